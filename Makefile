@@ -1,0 +1,34 @@
+# Everything runs in a local virtual environment that the targets create on first use.
+# torch==2.13.0 is installed first, on its own, so that nothing that depends on torch pulls a CUDA build.
+PYTHON ?= python3
+VENV   := .venv
+BIN    := $(VENV)/bin
+STAMP  := $(VENV)/.installed-dev
+OUT    ?= out
+
+.PHONY: install demo test lint bench bench-solver clean
+
+$(STAMP): pyproject.toml
+	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
+	$(BIN)/python -m pip install -q torch==2.13.0
+	$(BIN)/python -m pip install -q -e '.[dev]'
+	touch $(STAMP)
+
+install: $(STAMP)
+
+demo: $(STAMP)
+	$(BIN)/interreflect demo --out $(OUT)/demo
+
+lint: $(STAMP)
+	$(BIN)/ruff check torch_interreflect tests benchmarks examples
+
+test: $(STAMP) lint
+	$(BIN)/python -m pytest -q -n 2
+
+bench-solver: $(STAMP)
+	$(BIN)/python benchmarks/solver.py
+
+bench: bench-solver
+
+clean:
+	rm -rf $(OUT) .pytest_cache .ruff_cache

@@ -1,0 +1,1 @@
+"""Form factors between facets (placeholder while the quadrature is written)."""

@@ -1,0 +1,451 @@
+"""Scenes: planar convex facets (triangles and quads) held as tensors.
+
+A :class:`Scene` stores every facet as four corners ``[F, 4, 3]``; a triangle repeats its last vertex
+(``corners[i, 3] == corners[i, 2]``), so triangles and quads share one code path (the bilinear map of such a
+collapsed quad is the Duffy map of the triangle). Vertices run counter-clockwise seen from the reflecting
+side; the normal follows the right-hand rule.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from .errors import GeometryError, ShapeError
+
+__all__ = ["Scene"]
+
+#: Relative tolerance for planarity of quads (distance of the 4th vertex to the plane / facet diameter).
+PLANARITY_RTOL = 1e-5
+#: Facets with area below ``AREA_RTOL * scene_diameter**2`` are degenerate.
+AREA_RTOL = 1e-12
+
+
+def _as_tensor(x: Any, name: str, dtype: torch.dtype | None = None) -> Tensor:
+    if isinstance(x, Tensor):
+        t = x
+    else:
+        try:
+            t = torch.as_tensor(np.asarray(x))
+        except Exception as exc:
+            raise TypeError(f"{name} must be a tensor or array-like; got {type(x).__name__}") from exc
+    if dtype is not None:
+        t = t.to(dtype)
+    elif not t.is_floating_point():
+        t = t.to(torch.get_default_dtype())
+    return t
+
+
+class Scene:
+    """A set of planar convex facets, each a triangle or a quad.
+
+    Build one with :meth:`from_polygons`, :meth:`from_trimesh`, ``Scene(vertices, faces)`` or a builder in
+    :mod:`torch_interreflect.scenes`.
+
+    Args:
+        vertices: Vertex positions in metres. Shape ``[V, 3]``.
+        faces: Vertex indices of each facet, counter-clockwise seen from the reflecting side. Shape
+            ``[F, 3]`` (triangles) or ``[F, 4]`` (planar convex quads).
+        material: Optional material index of each facet. Shape ``[F]``.
+        material_names: Optional names of the materials, indexed by ``material``.
+
+    Shape:
+        - corners: ``[F, 4, 3]`` (triangles repeat their last vertex)
+        - areas: ``[F]``, normals: ``[F, 3]``, centroids: ``[F, 3]``
+
+    Example:
+        >>> import torch, torch_interreflect as ti
+        >>> v = torch.tensor([[0., 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]])
+        >>> scene = ti.Scene(v, torch.tensor([[0, 1, 2, 3]]))
+        >>> scene.num_facets, float(scene.areas[0])
+        (1, 1.0)
+    """
+
+    def __init__(
+        self,
+        vertices: Tensor | np.ndarray | Sequence,
+        faces: Tensor | np.ndarray | Sequence,
+        *,
+        material: Tensor | np.ndarray | Sequence | None = None,
+        material_names: Sequence[str] | None = None,
+    ) -> None:
+        v = _as_tensor(vertices, "vertices")
+        f = torch.as_tensor(np.asarray(faces) if not isinstance(faces, Tensor) else faces)
+        if v.ndim != 2 or v.shape[1] != 3:
+            raise ShapeError(f"vertices must have shape [V, 3]; got {list(v.shape)}")
+        if f.ndim != 2 or f.shape[1] not in (3, 4):
+            raise ShapeError(f"faces must have shape [F, 3] or [F, 4]; got {list(f.shape)}")
+        if f.is_floating_point():
+            raise TypeError(f"faces must hold integer indices; got dtype {f.dtype}")
+        f = f.long().to(v.device)
+        if f.numel() and (int(f.min()) < 0 or int(f.max()) >= v.shape[0]):
+            raise ShapeError(
+                f"faces index vertices 0..{v.shape[0] - 1}; got indices in [{int(f.min())}, {int(f.max())}]"
+            )
+        corners = v[f]
+        self._init_from_corners(corners, material, material_names)
+
+    # ------------------------------------------------------------------ construction
+    @classmethod
+    def from_polygons(
+        cls,
+        corners: Tensor | np.ndarray | Sequence,
+        *,
+        material: Tensor | np.ndarray | Sequence | None = None,
+        material_names: Sequence[str] | None = None,
+    ) -> Scene:
+        """Build a scene where every polygon is one facet.
+
+        Args:
+            corners: Polygon corners in metres, counter-clockwise seen from the reflecting side. Shape
+                ``[F, 3, 3]`` (triangles) or ``[F, 4, 3]`` (planar convex quads).
+            material: Optional material index per facet, shape ``[F]``.
+            material_names: Optional names of the materials.
+
+        Raises:
+            GeometryError: a facet is non-finite, degenerate, non-planar or non-convex (the message names it).
+            ShapeError: ``corners`` does not have shape ``[F, 3, 3]`` or ``[F, 4, 3]``.
+
+        Example:
+            >>> import torch, torch_interreflect as ti
+            >>> tri = torch.tensor([[[0., 0, 0], [1, 0, 0], [0, 1, 0]]])
+            >>> ti.Scene.from_polygons(tri).normals
+            tensor([[0., 0., 1.]])
+        """
+        c = _as_tensor(corners, "corners")
+        if c.ndim != 3 or c.shape[1] not in (3, 4) or c.shape[2] != 3:
+            raise ShapeError(f"corners must have shape [F, 3, 3] or [F, 4, 3]; got {list(c.shape)}")
+        self = cls.__new__(cls)
+        self._init_from_corners(c, material, material_names)
+        return self
+
+    @classmethod
+    def from_trimesh(cls, mesh: Any, *, dtype: torch.dtype | None = None) -> Scene:
+        """Build a scene from a :class:`trimesh.Trimesh`, one facet per triangle.
+
+        A per-facet material index is kept when the mesh has face colours (one material per distinct colour)
+        or a :class:`trimesh.Scene` was concatenated from several meshes (``mesh.metadata['material']``).
+
+        Args:
+            mesh: A ``trimesh.Trimesh`` (or a ``trimesh.Scene``, which is concatenated).
+            dtype: Floating dtype of the result (default: torch's default dtype).
+
+        Example:
+            >>> import trimesh, torch_interreflect as ti
+            >>> ti.Scene.from_trimesh(trimesh.creation.box()).num_facets
+            12
+        """
+        import trimesh
+
+        material = None
+        names: list[str] | None = None
+        if isinstance(mesh, trimesh.Scene):
+            geoms = list(mesh.dump())
+            mats = np.concatenate([np.full(len(g.faces), k) for k, g in enumerate(geoms)])
+            names = [str(g.metadata.get("name", f"mesh{k}")) for k, g in enumerate(geoms)]
+            mesh = trimesh.util.concatenate(geoms)
+            material = mats
+        if not isinstance(mesh, trimesh.Trimesh):
+            raise TypeError(f"from_trimesh expects a trimesh.Trimesh or trimesh.Scene; got {type(mesh).__name__}")
+        if material is None and getattr(mesh.visual, "kind", None) == "face":
+            colours = np.asarray(mesh.visual.face_colors)
+            uniq, inverse = np.unique(colours, axis=0, return_inverse=True)
+            if len(uniq) > 1:
+                material = inverse.reshape(-1)
+                names = ["#" + "".join(f"{int(c):02x}" for c in u[:3]) for u in uniq]
+        v = torch.as_tensor(np.asarray(mesh.vertices), dtype=dtype or torch.get_default_dtype())
+        f = torch.as_tensor(np.asarray(mesh.faces, dtype=np.int64))
+        return cls(v, f, material=material, material_names=names)
+
+    def _init_from_corners(
+        self,
+        corners: Tensor,
+        material: Tensor | np.ndarray | Sequence | None,
+        material_names: Sequence[str] | None,
+        validate: bool = True,
+    ) -> None:
+        if corners.shape[1] == 3:
+            corners = torch.cat([corners, corners[:, 2:3]], dim=1)
+            is_tri = torch.ones(corners.shape[0], dtype=torch.bool, device=corners.device)
+        else:
+            is_tri = torch.zeros(corners.shape[0], dtype=torch.bool, device=corners.device)
+        self._corners = corners.contiguous()
+        self._is_triangle = is_tri
+        if material is not None:
+            m = torch.as_tensor(np.asarray(material) if not isinstance(material, Tensor) else material)
+            m = m.long().to(corners.device).reshape(-1)
+            if m.shape[0] != corners.shape[0]:
+                raise ShapeError(f"material must have one entry per facet ([{corners.shape[0]}]); got {list(m.shape)}")
+            self._material: Tensor | None = m
+        else:
+            self._material = None
+        self.material_names = list(material_names) if material_names is not None else None
+        if validate:
+            self._validate()
+
+    @classmethod
+    def _from_parts(
+        cls, corners: Tensor, is_triangle: Tensor, material: Tensor | None, material_names: list[str] | None
+    ) -> Scene:
+        """Internal constructor that trusts its (already validated) inputs."""
+        self = cls.__new__(cls)
+        self._corners = corners.contiguous()
+        self._is_triangle = is_triangle
+        self._material = material
+        self.material_names = material_names
+        return self
+
+    def _validate(self) -> None:
+        c = self._corners
+        if c.shape[0] == 0:
+            raise GeometryError("a scene needs at least one facet; got 0")
+        finite = torch.isfinite(c).reshape(c.shape[0], -1).all(dim=1)
+        if not bool(finite.all()):
+            bad = int(torch.nonzero(~finite)[0])
+            raise GeometryError(f"facet {bad} has non-finite corners: {c[bad].tolist()}")
+        cd = c.double()
+        diam = float((cd.reshape(-1, 3).max(0).values - cd.reshape(-1, 3).min(0).values).norm())
+        area = _areas(cd)
+        tiny = area <= AREA_RTOL * max(diam, 1e-300) ** 2
+        if bool(tiny.any()):
+            bad = int(torch.nonzero(tiny)[0])
+            raise GeometryError(
+                f"facet {bad} is degenerate: area {float(area[bad]):.3g} m² (corners {cd[bad].tolist()})"
+            )
+        quad = ~self._is_triangle
+        if bool(quad.any()):
+            n = _normals(cd)
+            size = (cd - cd.mean(1, keepdim=True)).norm(dim=-1).max(dim=1).values
+            # planarity: every corner within PLANARITY_RTOL * size of the mean plane
+            dev = ((cd - cd.mean(1, keepdim=True)) * n[:, None, :]).sum(-1).abs().max(dim=1).values
+            nonplanar = quad & (dev > PLANARITY_RTOL * size)
+            if bool(nonplanar.any()):
+                bad = int(torch.nonzero(nonplanar)[0])
+                raise GeometryError(
+                    f"facet {bad} is not planar: a corner lies {float(dev[bad]):.3g} m off its plane "
+                    f"(tolerance {PLANARITY_RTOL:g} × size {float(size[bad]):.3g} m)"
+                )
+            # convexity: the turn at every corner has the orientation of the facet normal
+            e = torch.roll(cd, -1, dims=1) - cd
+            turn = torch.linalg.cross(e, torch.roll(e, -1, dims=1), dim=-1)
+            s = (turn * n[:, None, :]).sum(-1)
+            nonconvex = quad & (s <= 1e-12 * size[:, None] ** 2).any(dim=1)
+            if bool(nonconvex.any()):
+                bad = int(torch.nonzero(nonconvex)[0])
+                raise GeometryError(
+                    f"facet {bad} is not a convex quad with corners in order (turn orientations "
+                    f"{[round(float(x), 6) for x in s[bad]]}); corners {cd[bad].tolist()}"
+                )
+
+    # ------------------------------------------------------------------ properties
+    @property
+    def corners(self) -> Tensor:
+        """Facet corners ``[F, 4, 3]`` in metres (triangles repeat their last corner)."""
+        return self._corners
+
+    @property
+    def is_triangle(self) -> Tensor:
+        """Boolean mask ``[F]``: which facets are triangles."""
+        return self._is_triangle
+
+    @property
+    def material(self) -> Tensor | None:
+        """Per-facet material index ``[F]``, or ``None``."""
+        return self._material
+
+    @property
+    def num_facets(self) -> int:
+        """Number of facets ``F``."""
+        return int(self._corners.shape[0])
+
+    @property
+    def dtype(self) -> torch.dtype:
+        return self._corners.dtype
+
+    @property
+    def device(self) -> torch.device:
+        return self._corners.device
+
+    @property
+    def areas(self) -> Tensor:
+        """Facet areas ``[F]`` in m²."""
+        return _areas(self._corners)
+
+    @property
+    def normals(self) -> Tensor:
+        """Unit normals ``[F, 3]`` of the reflecting side."""
+        return _normals(self._corners)
+
+    @property
+    def centroids(self) -> Tensor:
+        """Area centroids ``[F, 3]`` in metres."""
+        c = self._corners
+        a, b, cc, d = c.unbind(1)
+        # split into triangles (a, b, c) and (a, c, d); a collapsed quad gives a zero second triangle
+        a1 = 0.5 * torch.linalg.cross(b - a, cc - a, dim=-1).norm(dim=-1)
+        a2 = 0.5 * torch.linalg.cross(cc - a, d - a, dim=-1).norm(dim=-1)
+        g1 = (a + b + cc) / 3
+        g2 = (a + cc + d) / 3
+        return (a1[:, None] * g1 + a2[:, None] * g2) / (a1 + a2)[:, None]
+
+    @property
+    def diameters(self) -> Tensor:
+        """Largest distance between two corners of each facet ``[F]`` in metres."""
+        c = self._corners
+        return (c[:, :, None, :] - c[:, None, :, :]).norm(dim=-1).flatten(1).max(dim=1).values
+
+    def to(self, *args: Any, **kwargs: Any) -> Scene:
+        """Move/cast the corners like :meth:`torch.Tensor.to` (integer tensors keep their dtype)."""
+        c = self._corners.to(*args, **kwargs)
+        dev = c.device
+        mat = self._material.to(dev) if self._material is not None else None
+        return Scene._from_parts(c, self._is_triangle.to(dev), mat, self.material_names)
+
+    def __len__(self) -> int:
+        return self.num_facets
+
+    def __repr__(self) -> str:
+        nt = int(self._is_triangle.sum())
+        return (
+            f"Scene(num_facets={self.num_facets}, quads={self.num_facets - nt}, triangles={nt}, "
+            f"dtype={self.dtype}, device={self.device})"
+        )
+
+    # ------------------------------------------------------------------ operations
+    def subdivide(self, k: int) -> tuple[Scene, Tensor]:
+        """Split each quad into ``k × k`` quads and each triangle into ``k²`` triangles.
+
+        Args:
+            k: Subdivision factor (``k >= 1``).
+
+        Returns:
+            ``(finer_scene, parent)``: ``parent[j]`` is the index of the facet that child ``j`` came from.
+            Children of one facet are contiguous and their areas sum to the parent's.
+
+        Shape:
+            - parent: ``[F * k²]``
+
+        Example:
+            >>> import torch_interreflect as ti
+            >>> fine, parent = ti.scenes.v_groove(45.0, divisions=2).subdivide(3)
+            >>> fine.num_facets, int(parent.max())
+            (72, 7)
+        """
+        if not isinstance(k, int) or isinstance(k, bool) or k < 1:
+            raise ValueError(f"subdivide(k) needs an integer k >= 1; got {k!r}")
+        c = self._corners
+        dev, dt = c.device, c.dtype
+        F = c.shape[0]
+        if k == 1:
+            return self, torch.arange(F, device=dev)
+        s = torch.linspace(0, 1, k + 1, device=dev, dtype=dt)
+        quad_idx = torch.nonzero(~self._is_triangle).reshape(-1)
+        tri_idx = torch.nonzero(self._is_triangle).reshape(-1)
+        out_corners = torch.empty(F, k * k, 4, 3, device=dev, dtype=dt)
+        out_tri = torch.zeros(F, k * k, dtype=torch.bool, device=dev)
+        if quad_idx.numel():
+            q = c[quad_idx]  # [Q, 4, 3]
+            a, b, cc, d = (x[:, None, None, :] for x in q.unbind(1))
+            u = s[None, :, None, None]
+            v = s[None, None, :, None]
+            grid = (1 - u) * (1 - v) * a + u * (1 - v) * b + u * v * cc + (1 - u) * v * d  # [Q, k+1, k+1, 3]
+            sub = torch.stack(
+                [grid[:, :-1, :-1], grid[:, 1:, :-1], grid[:, 1:, 1:], grid[:, :-1, 1:]], dim=3
+            )  # [Q, k, k, 4, 3]
+            out_corners[quad_idx] = sub.reshape(-1, k * k, 4, 3)
+        if tri_idx.numel():
+            t = c[tri_idx, :3]  # [T, 3, 3]
+            a, b, cc = t.unbind(1)
+            tris = []
+            for i in range(k):
+                for j in range(k - i):
+                    p = lambda ii, jj: a + (b - a) * (ii / k) + (cc - a) * (jj / k)  # noqa: E731
+                    tris.append(torch.stack([p(i, j), p(i + 1, j), p(i, j + 1), p(i, j + 1)], dim=1))
+                    if j < k - i - 1:
+                        tris.append(
+                            torch.stack([p(i + 1, j), p(i + 1, j + 1), p(i, j + 1), p(i, j + 1)], dim=1)
+                        )
+            out_corners[tri_idx] = torch.stack(tris, dim=1)
+            out_tri[tri_idx] = True
+        parent = torch.arange(F, device=dev).repeat_interleave(k * k)
+        mat = self._material.repeat_interleave(k * k) if self._material is not None else None
+        fine = Scene._from_parts(out_corners.reshape(-1, 4, 3), out_tri.reshape(-1), mat, self.material_names)
+        return fine, parent
+
+    def average_to_parent(self, values: Tensor, parent: Tensor, fine: Scene) -> Tensor:
+        """Area-average per-facet ``values`` of ``fine`` (from :meth:`subdivide`) back onto this scene.
+
+        Args:
+            values: Per-facet values of the finer scene, facets on dim ``-2``. Shape ``[..., F_fine, C]``.
+            parent: The parent index returned by :meth:`subdivide`. Shape ``[F_fine]``.
+            fine: The finer scene.
+
+        Returns:
+            Area-weighted means. Shape ``[..., F, C]``.
+        """
+        if values.shape[-2] != fine.num_facets or parent.shape[0] != fine.num_facets:
+            raise ShapeError(
+                f"values must have {fine.num_facets} facets on dim -2 and parent {fine.num_facets} entries; "
+                f"got values {list(values.shape)}, parent {list(parent.shape)}"
+            )
+        w = fine.areas.to(values.dtype)
+        num = torch.zeros(*values.shape[:-2], self.num_facets, values.shape[-1], dtype=values.dtype,
+                          device=values.device)
+        num = num.index_add(-2, parent, values * w[:, None])
+        den = torch.zeros(self.num_facets, dtype=values.dtype, device=values.device).index_add(0, parent, w)
+        return num / den[:, None]
+
+    @staticmethod
+    def concatenate(scenes: Sequence[Scene]) -> Scene:
+        """Join several scenes into one; material indices are offset so each scene keeps its own."""
+        if not scenes:
+            raise ValueError("concatenate needs at least one scene; got none")
+        corners = torch.cat([s.corners for s in scenes])
+        tri = torch.cat([s.is_triangle for s in scenes])
+        mats, names, off = [], [], 0
+        for k, s in enumerate(scenes):
+            if s.material is not None:
+                mats.append(s.material + off)
+                nm = s.material_names or [f"scene{k}_m{i}" for i in range(int(s.material.max()) + 1)]
+                off += len(nm)
+                names += nm
+            else:
+                mats.append(torch.full((s.num_facets,), off, dtype=torch.long, device=s.device))
+                names.append(f"scene{k}")
+                off += 1
+        return Scene._from_parts(corners, tri, torch.cat(mats), names)
+
+    def to_trimesh(self) -> Any:
+        """The facets as a triangle :class:`trimesh.Trimesh` (quads split in two) and the facet of each face.
+
+        Returns:
+            ``(mesh, face_facet)`` where ``face_facet[t]`` is the facet that triangle ``t`` belongs to.
+        """
+        import trimesh
+
+        c = self._corners.detach().double().cpu().numpy()
+        F = c.shape[0]
+        tri_mask = self._is_triangle.cpu().numpy()
+        t1 = c[:, [0, 1, 2]]
+        t2 = c[~tri_mask][:, [0, 2, 3]]
+        tris = np.concatenate([t1, t2])
+        owner = np.concatenate([np.arange(F), np.nonzero(~tri_mask)[0]])
+        verts = tris.reshape(-1, 3)
+        faces = np.arange(len(verts)).reshape(-1, 3)
+        mesh = trimesh.Trimesh(verts, faces, process=False)
+        return mesh, owner
+
+
+def _normals(c: Tensor) -> Tensor:
+    # Newell-like robust normal of a (possibly collapsed) quad: cross product of the diagonals.
+    n = torch.linalg.cross(c[:, 2] - c[:, 0], c[:, 3] - c[:, 1], dim=-1)
+    return n / n.norm(dim=-1, keepdim=True).clamp_min(torch.finfo(c.dtype).tiny)
+
+
+def _areas(c: Tensor) -> Tensor:
+    # Area of a planar quad = half the norm of the cross product of its diagonals (exact for triangles too).
+    return 0.5 * torch.linalg.cross(c[:, 2] - c[:, 0], c[:, 3] - c[:, 1], dim=-1).norm(dim=-1)

@@ -1,0 +1,297 @@
+"""Built-in scenes: the V-groove and W shape of Deeb et al. (2017), box corner, closed box, Cornell box.
+
+All sizes are in metres. Every builder returns a :class:`~torch_interreflect.scene.Scene` whose
+``material`` index names its parts (``scene.material_names``), with facets ordered part by part.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+import numpy as np
+import torch
+
+from .scene import Scene
+
+__all__ = ["box_corner", "closed_box", "cornell_box", "grid_quads", "v_groove", "w_shape"]
+
+
+def _pair(x: int | Sequence[int], name: str) -> tuple[int, int]:
+    if isinstance(x, (int, np.integer)) and not isinstance(x, bool):
+        t = (int(x), int(x))
+    else:
+        t = tuple(int(v) for v in x)  # type: ignore[union-attr]
+        if len(t) != 2:
+            raise ValueError(f"{name} must be an int or a pair of ints; got {x!r}")
+    if min(t) < 1:
+        raise ValueError(f"{name} must be >= 1; got {x!r}")
+    return t  # type: ignore[return-value]
+
+
+def grid_quads(origin: Sequence[float], a: Sequence[float], b: Sequence[float], na: int, nb: int) -> np.ndarray:
+    """Split the parallelogram ``origin + s a + t b`` (s, t in [0, 1]) into ``na × nb`` quads.
+
+    The quads are ordered with ``s`` (along ``a``) as the slow index; their normal is ``a × b``.
+
+    Returns:
+        Corners ``[na * nb, 4, 3]`` (float64 numpy array).
+    """
+    o, a_, b_ = (np.asarray(v, dtype=np.float64) for v in (origin, a, b))
+    s = np.arange(na + 1)[:, None] / na
+    t = np.arange(nb + 1)[None, :] / nb
+    p = o + s[..., None] * a_ + t[..., None] * b_  # [na+1, nb+1, 3]
+    q = np.stack([p[:-1, :-1], p[1:, :-1], p[1:, 1:], p[:-1, 1:]], axis=2)  # [na, nb, 4, 3]
+    return q.reshape(-1, 4, 3)
+
+
+def _build(parts: list[tuple[str, np.ndarray]], dtype: torch.dtype | None) -> Scene:
+    corners = np.concatenate([c for _, c in parts])
+    material = np.concatenate([np.full(len(c), k) for k, (_, c) in enumerate(parts)])
+    dt = dtype or torch.get_default_dtype()
+    return Scene.from_polygons(
+        torch.as_tensor(corners, dtype=dt), material=material, material_names=[n for n, _ in parts]
+    )
+
+
+def v_groove(
+    angle_deg: float,
+    size: tuple[float, float] = (0.09, 0.06),
+    divisions: int | Sequence[int] = 10,
+    *,
+    dtype: torch.dtype | None = None,
+) -> Scene:
+    """Two plates sharing an edge (the hinge) with interior angle ``angle_deg``, as in the paper's §6.
+
+    The hinge runs along ``+y`` from the origin. Plate A lies in ``z = 0`` (``x >= 0``, normal ``+z``); plate
+    B leaves the hinge in direction ``(cos φ, 0, sin φ)`` with its normal into the groove.
+
+    Args:
+        angle_deg: Interior angle φ between the plates in degrees, in (0, 180).
+        size: ``(length along the hinge, width away from the hinge)`` of each plate in metres (the paper's
+            9 cm × 6 cm by default).
+        divisions: Facets ``(along the hinge, across)`` per plate, or one int for both (paper: 10 × 10).
+        dtype: Floating dtype.
+
+    Returns:
+        A scene with ``2 * n_along * n_across`` quads. Facet ``p * n_across * n_along + c * n_along + r`` is on
+        plate ``p`` (material 0 = "plate_a", 1 = "plate_b"), column ``c`` (0 nearest the hinge), row ``r``.
+
+    Example:
+        >>> import torch_interreflect as ti
+        >>> ti.scenes.v_groove(45.0).num_facets
+        200
+    """
+    if not 0.0 < float(angle_deg) < 180.0:
+        raise ValueError(f"angle_deg must lie in (0, 180); got {angle_deg}")
+    length, width = (float(v) for v in size)
+    if length <= 0 or width <= 0:
+        raise ValueError(f"size must be positive (length, width); got {size}")
+    n_along, n_across = _pair(divisions, "divisions")
+    phi = math.radians(angle_deg)
+    d = np.array([math.cos(phi), 0.0, math.sin(phi)])
+    y = np.array([0.0, length, 0.0])
+    # plate A: columns along +x (slow index), rows along y; normal x × y = +z
+    plate_a = grid_quads([0, 0, 0], [width, 0, 0], y, n_across, n_along)
+    # plate B: slow index along d; normal must be y × d (into the groove), so reverse the corner order
+    plate_b = grid_quads([0, 0, 0], width * d, y, n_across, n_along)[:, ::-1]
+    return _build([("plate_a", plate_a), ("plate_b", np.ascontiguousarray(plate_b))], dtype)
+
+
+def box_corner(
+    size: float = 1.0, divisions: int | Sequence[int] = 4, *, dtype: torch.dtype | None = None
+) -> Scene:
+    """Three mutually perpendicular squares meeting at the origin (a room corner), normals inward.
+
+    Args:
+        size: Edge length of each square in metres.
+        divisions: Facets per edge (one int, or a pair for the two directions of each square).
+
+    Returns:
+        A scene with materials ``floor`` (z = 0), ``wall_x`` (x = 0) and ``wall_y`` (y = 0).
+    """
+    n1, n2 = _pair(divisions, "divisions")
+    s = float(size)
+    ex, ey, ez = np.eye(3) * s
+    parts = [
+        ("floor", grid_quads([0, 0, 0], ex, ey, n1, n2)),
+        ("wall_x", grid_quads([0, 0, 0], ey, ez, n1, n2)),
+        ("wall_y", grid_quads([0, 0, 0], ez, ex, n1, n2)),
+    ]
+    return _build(parts, dtype)
+
+
+def closed_box(
+    size: float | Sequence[float] = 1.0, divisions: int = 3, *, dtype: torch.dtype | None = None
+) -> Scene:
+    """The six inner faces of a rectangular box, normals pointing inward (a closed enclosure).
+
+    Args:
+        size: Edge lengths ``(sx, sy, sz)`` in metres, or one number for a cube.
+        divisions: Facets per edge of each face.
+
+    Returns:
+        A scene with ``6 * divisions²`` quads, materials ``bottom, top, y0, y1, x0, x1``.
+    """
+    sx, sy, sz = (float(size),) * 3 if np.isscalar(size) else (float(v) for v in size)  # type: ignore[arg-type]
+    n = int(divisions)
+    if n < 1:
+        raise ValueError(f"divisions must be >= 1; got {divisions}")
+    ex, ey, ez = np.diag([sx, sy, sz])
+    parts = [
+        ("bottom", grid_quads([0, 0, 0], ex, ey, n, n)),
+        ("top", grid_quads([0, 0, sz], ey, ex, n, n)),
+        ("y0", grid_quads([0, 0, 0], ez, ex, n, n)),
+        ("y1", grid_quads([0, sy, 0], ex, ez, n, n)),
+        ("x0", grid_quads([0, 0, 0], ey, ez, n, n)),
+        ("x1", grid_quads([sx, 0, 0], ez, ey, n, n)),
+    ]
+    return _build(parts, dtype)
+
+
+def _extrude(p0: np.ndarray, p1: np.ndarray, length: float, n_across: int, n_along: int) -> np.ndarray:
+    """Quads of the plate swept by the profile segment p0→p1 (in xz) along +y, normal = t rotated +90°."""
+    a = np.array([p1[0] - p0[0], 0.0, p1[1] - p0[1]])
+    return grid_quads([p0[0], 0.0, p0[1]], a, [0.0, length, 0.0], n_across, n_along)
+
+
+def w_shape(
+    valley_angle_deg: float = 45.0,
+    outer: float = 0.08,
+    inner: float = 0.04,
+    length: float = 0.10,
+    divisions: Sequence[int] = (10, 20, 10),
+    *,
+    dtype: torch.dtype | None = None,
+) -> Scene:
+    """The paper's W shape: four plates, two deep outer ones and two shallower inner ones (§6.3, Fig. 10).
+
+    The profile lies in the xz-plane and is swept ``length`` along ``+y``: outer-left, inner-left,
+    inner-right, outer-right plates, with valleys of ``valley_angle_deg`` and a central ridge lower than the
+    outer tops, so the ridge hides part of each outer plate from the other (occlusion).
+
+    Args:
+        valley_angle_deg: Interior angle at both valleys, degrees.
+        outer: Width of the outer plates (m), the paper's 8 cm.
+        inner: Width of the inner plates (m).
+        length: Extent along the valleys (m), the paper's 10 cm.
+        divisions: ``(along, outer across, inner across)`` facets per plate (paper: 10, 20, 10).
+
+    Returns:
+        A scene with materials ``outer_left, inner_left, inner_right, outer_right``.
+    """
+    if not 0.0 < valley_angle_deg < 180.0:
+        raise ValueError(f"valley_angle_deg must lie in (0, 180); got {valley_angle_deg}")
+    if len(divisions) != 3 or min(divisions) < 1:
+        raise ValueError(f"divisions must be three ints >= 1 (along, outer, inner); got {divisions!r}")
+    n_along, n_outer, n_inner = (int(v) for v in divisions)
+    half = math.radians(90.0 - valley_angle_deg / 2.0)  # elevation of each plate at a symmetric valley
+    up_l = np.array([-math.cos(half), math.sin(half)])
+    up_r = np.array([math.cos(half), math.sin(half)])
+    v1 = np.array([0.0, 0.0])
+    p0 = v1 + outer * up_l
+    ridge = v1 + inner * up_r
+    v2 = ridge + inner * np.array([math.cos(half), -math.sin(half)])
+    p4 = v2 + outer * up_r
+    parts = [
+        ("outer_left", _extrude(p0, v1, length, n_outer, n_along)),
+        ("inner_left", _extrude(v1, ridge, length, n_inner, n_along)),
+        ("inner_right", _extrude(ridge, v2, length, n_inner, n_along)),
+        ("outer_right", _extrude(v2, p4, length, n_outer, n_along)),
+    ]
+    return _build(parts, dtype)
+
+
+# The Cornell box as published by the Cornell Program of Computer Graphics (millimetres).
+_CORNELL_MM: dict[str, list[list[list[float]]]] = {
+    "floor": [[[552.8, 0.0, 0.0], [0.0, 0.0, 0.0], [0.0, 0.0, 559.2], [549.6, 0.0, 559.2]]],
+    "ceiling": [[[556.0, 548.8, 0.0], [556.0, 548.8, 559.2], [0.0, 548.8, 559.2], [0.0, 548.8, 0.0]]],
+    "back_wall": [[[549.6, 0.0, 559.2], [0.0, 0.0, 559.2], [0.0, 548.8, 559.2], [556.0, 548.8, 559.2]]],
+    "green_wall": [[[0.0, 0.0, 559.2], [0.0, 0.0, 0.0], [0.0, 548.8, 0.0], [0.0, 548.8, 559.2]]],
+    "red_wall": [[[552.8, 0.0, 0.0], [549.6, 0.0, 559.2], [556.0, 548.8, 559.2], [556.0, 548.8, 0.0]]],
+    "short_block": [
+        [[130.0, 165.0, 65.0], [82.0, 165.0, 225.0], [240.0, 165.0, 272.0], [290.0, 165.0, 114.0]],
+        [[290.0, 0.0, 114.0], [290.0, 165.0, 114.0], [240.0, 165.0, 272.0], [240.0, 0.0, 272.0]],
+        [[130.0, 0.0, 65.0], [130.0, 165.0, 65.0], [290.0, 165.0, 114.0], [290.0, 0.0, 114.0]],
+        [[82.0, 0.0, 225.0], [82.0, 165.0, 225.0], [130.0, 165.0, 65.0], [130.0, 0.0, 65.0]],
+        [[240.0, 0.0, 272.0], [240.0, 165.0, 272.0], [82.0, 165.0, 225.0], [82.0, 0.0, 225.0]],
+    ],
+    "tall_block": [
+        [[423.0, 330.0, 247.0], [265.0, 330.0, 296.0], [314.0, 330.0, 456.0], [472.0, 330.0, 406.0]],
+        [[423.0, 0.0, 247.0], [423.0, 330.0, 247.0], [472.0, 330.0, 406.0], [472.0, 0.0, 406.0]],
+        [[472.0, 0.0, 406.0], [472.0, 330.0, 406.0], [314.0, 330.0, 456.0], [314.0, 0.0, 456.0]],
+        [[314.0, 0.0, 456.0], [314.0, 330.0, 456.0], [265.0, 330.0, 296.0], [265.0, 0.0, 296.0]],
+        [[265.0, 0.0, 296.0], [265.0, 330.0, 296.0], [423.0, 330.0, 247.0], [423.0, 0.0, 247.0]],
+    ],
+    # the light, 0.5 mm below the ceiling so the two do not overlap
+    "light": [[[343.0, 548.3, 227.0], [343.0, 548.3, 332.0], [213.0, 548.3, 332.0], [213.0, 548.3, 227.0]]],
+}
+_CORNELL_CENTRE = np.array([278.0, 274.4, 279.6])
+
+
+def _orient(quad: np.ndarray, towards: np.ndarray, inward: bool) -> np.ndarray:
+    n = np.cross(quad[2] - quad[0], quad[3] - quad[1])
+    c = quad.mean(0)
+    facing = float(np.dot(n, towards - c)) > 0
+    return quad if facing == inward else quad[::-1].copy()
+
+
+def _planar(quad: np.ndarray, rtol: float = 1e-6) -> bool:
+    n = np.cross(quad[2] - quad[0], quad[3] - quad[1])
+    n = n / np.linalg.norm(n)
+    dev = np.abs((quad - quad.mean(0)) @ n).max()
+    return bool(dev <= rtol * np.linalg.norm(quad - quad.mean(0), axis=1).max())
+
+
+def cornell_box(
+    divisions: int = 1, *, light: bool = True, scale: float = 1e-3, dtype: torch.dtype | None = None
+) -> Scene:
+    """The published Cornell box (walls, ceiling, floor and its two blocks), normals toward the air.
+
+    Coordinates are the Cornell Program of Computer Graphics measurements in millimetres times ``scale``
+    (metres by default). The red wall of the published data is slightly non-planar; it is split into two
+    triangles so every facet stays planar. With ``light=True`` the ceiling light is a facet 0.5 mm below the
+    ceiling, facing down.
+
+    Args:
+        divisions: Each published quad is split into ``divisions × divisions`` quads (triangles into
+            ``divisions²`` triangles).
+        light: Include the light facet (material ``light``).
+        scale: Metres per published unit (millimetres).
+
+    Returns:
+        A scene with materials ``floor, ceiling, back_wall, green_wall, red_wall, short_block, tall_block``
+        and ``light``.
+    """
+    if int(divisions) < 1:
+        raise ValueError(f"divisions must be >= 1; got {divisions}")
+    scenes = []
+    names = []
+    for name, quads in _CORNELL_MM.items():
+        if name == "light" and not light:
+            continue
+        polys_q, polys_t = [], []
+        for q in quads:
+            q = np.asarray(q, dtype=np.float64)
+            if name.endswith("block"):
+                centre = np.mean(np.asarray(quads).reshape(-1, 3), axis=0)
+                q = _orient(q, centre, inward=False)
+            else:
+                q = _orient(q, _CORNELL_CENTRE, inward=True)
+            if _planar(q):
+                polys_q.append(q)
+            else:
+                polys_t += [q[[0, 1, 2]], q[[0, 2, 3]]]
+        dt = dtype or torch.get_default_dtype()
+        for polys in (polys_q, polys_t):
+            if polys:
+                s = Scene.from_polygons(torch.as_tensor(np.array(polys) * scale, dtype=dt))
+                if divisions > 1:
+                    s, _ = s.subdivide(int(divisions))
+                scenes.append(s)
+                names.append(name)
+    joined = Scene.concatenate(scenes)
+    # one material per published part, even where it was split into quads and triangles
+    uniq = list(dict.fromkeys(names))
+    remap = torch.tensor([uniq.index(n) for n in names])
+    return Scene._from_parts(joined.corners, joined.is_triangle, remap[joined.material], uniq)
