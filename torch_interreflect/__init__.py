@@ -10,17 +10,22 @@ Example:
     32
 """
 
-from . import errors, scenes
+from . import errors, raycast, scenes, spectral
 from ._version import __version__
-
+from .camera import Camera, spectral_to_rgb
+from .formfactors import form_factors
 from .kernel import FormFactors
 from .scene import Scene
 
 __all__ = [
+    "Camera",
     "FormFactors",
     "Scene",
     "__version__",
     "errors",
     "form_factors",
+    "raycast",
     "scenes",
+    "spectral",
+    "spectral_to_rgb",
 ]

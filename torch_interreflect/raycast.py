@@ -1,0 +1,88 @@
+"""Ray casting against a scene's facets with Embree (through trimesh's ``embreex`` binding).
+
+Geometry work that is not differentiable: it runs once per scene, on numpy float32 arrays, and its results
+(visibility fractions, lit fractions, hit facets) are cached by the callers.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .scene import Scene
+
+__all__ = ["RayCaster"]
+
+
+class RayCaster:
+    """Segment-occlusion and first-hit queries against the facets of a scene.
+
+    Args:
+        scene: The scene; quads are split into two triangles, each remembering its facet.
+
+    Example:
+        >>> import numpy as np, torch_interreflect as ti
+        >>> rc = ti.raycast.RayCaster(ti.scenes.closed_box(divisions=1))
+        >>> rc.first_hit(np.array([[0.5, 0.5, 0.5]]), np.array([[0.0, 0.0, 1.0]])).tolist()
+        [1]
+    """
+
+    def __init__(self, scene: Scene) -> None:
+        from embreex import rtcore_scene
+        from embreex.mesh_construction import TriangleMesh
+
+        mesh, owner = scene.to_trimesh()
+        self._owner = np.asarray(owner, dtype=np.int64)
+        tris = np.asarray(mesh.triangles, dtype=np.float64)
+        self._origin = tris.reshape(-1, 3).mean(0)  # re-centre: float32 keeps more digits near 0
+        self._scene = rtcore_scene.EmbreeScene()
+        TriangleMesh(self._scene, (tris - self._origin).astype(np.float32))
+        lo, hi = tris.reshape(-1, 3).min(0), tris.reshape(-1, 3).max(0)
+        self.size = float(np.linalg.norm(hi - lo))
+        #: offset (m) that keeps a ray from hitting the facet it starts on or ends at
+        self.eps = 1e-6 * self.size
+
+    def segments_blocked(self, start: np.ndarray, end: np.ndarray, batch: int = 1 << 20) -> np.ndarray:
+        """Whether anything lies strictly between ``start`` and ``end``.
+
+        Args:
+            start: Segment starts in metres, ``[N, 3]``.
+            end: Segment ends in metres, ``[N, 3]``.
+
+        Returns:
+            Boolean ``[N]``.
+        """
+        start = np.asarray(start, dtype=np.float64) - self._origin
+        end = np.asarray(end, dtype=np.float64) - self._origin
+        out = np.zeros(len(start), dtype=bool)
+        for s in range(0, len(start), batch):
+            a, b = start[s : s + batch], end[s : s + batch]
+            d = b - a
+            length = np.linalg.norm(d, axis=1)
+            d = d / np.maximum(length, 1e-300)[:, None]
+            o = a + d * self.eps
+            tfar = np.maximum(length - 2 * self.eps, 0.0)
+            res = self._scene.run(o.astype(np.float32), d.astype(np.float32), dists=tfar.astype(np.float32),
+                                  query="OCCLUDED")
+            out[s : s + batch] = (np.asarray(res) != -1) & (tfar > 0)
+        return out
+
+    def first_hit(self, origins: np.ndarray, directions: np.ndarray, batch: int = 1 << 20) -> np.ndarray:
+        """Index of the first facet hit by each ray (``-1`` when it escapes).
+
+        Args:
+            origins: Ray origins in metres, ``[N, 3]`` (offset by a tiny step along the ray).
+            directions: Ray directions, ``[N, 3]`` (need not be normalised).
+
+        Returns:
+            Facet indices ``[N]`` (int64).
+        """
+        origins = np.asarray(origins, dtype=np.float64) - self._origin
+        directions = np.asarray(directions, dtype=np.float64)
+        out = np.empty(len(origins), dtype=np.int64)
+        for s in range(0, len(origins), batch):
+            d = directions[s : s + batch]
+            d = d / np.linalg.norm(d, axis=1, keepdims=True)
+            o = origins[s : s + batch] + d * self.eps
+            tri = np.asarray(self._scene.run(o.astype(np.float32), d.astype(np.float32), query="INTERSECT"))
+            out[s : s + batch] = np.where(tri >= 0, self._owner[np.maximum(tri, 0)], -1)
+        return out
