@@ -10,7 +10,7 @@ Example:
     32
 """
 
-from . import errors, raycast, scenes, spectral
+from . import errors, lights, raycast, scenes, spectral
 from ._version import __version__
 from .camera import Camera, spectral_to_rgb
 from .formfactors import form_factors
@@ -24,6 +24,7 @@ __all__ = [
     "__version__",
     "errors",
     "form_factors",
+    "lights",
     "raycast",
     "scenes",
     "spectral",

@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import math
 import time
-from functools import lru_cache
+from functools import cache
 from typing import Literal
 
 import numpy as np
@@ -40,21 +40,21 @@ _SPARSE_DENSITY = 0.25
 
 
 # ---------------------------------------------------------------------------------------------- rules
-@lru_cache(maxsize=None)
+@cache
 def _gauss01(n: int) -> tuple[np.ndarray, np.ndarray]:
     """Gauss-Legendre nodes and weights on [0, 1]."""
     x, w = np.polynomial.legendre.leggauss(n)
     return 0.5 * (x + 1.0), 0.5 * w
 
 
-@lru_cache(maxsize=None)
+@cache
 def _graded01(n: int, q: float) -> tuple[np.ndarray, np.ndarray]:
     """Gauss-Legendre on [0, 1] under the map ``s = t**q``: nodes cluster toward 0."""
     t, w = _gauss01(n)
     return t**q, w * q * t ** (q - 1.0)
 
 
-@lru_cache(maxsize=None)
+@cache
 def _sigmoid01(n: int, q: float) -> tuple[np.ndarray, np.ndarray]:
     """Gauss-Legendre on [0, 1] under ``s = t^q / (t^q + (1-t)^q)``: nodes cluster toward both ends."""
     t, w = _gauss01(n)
@@ -151,12 +151,34 @@ def _clip(poly: Tensor, point: Tensor, normal: Tensor, eps: float) -> Tensor:
     inter = poly + t[..., None] * (nxt - poly)
     slots = torch.stack([poly, inter], dim=2).reshape(P, 2 * K, 3)
     valid = torch.stack([inside, cross], dim=2).reshape(P, 2 * K)
-    key = (~valid).to(torch.int64) * (2 * K) + torch.arange(2 * K, device=poly.device)
+    return _compact(slots, valid)[0]
+
+
+def _compact(poly: Tensor, keep: Tensor) -> tuple[Tensor, Tensor]:
+    """Move the kept corners of ``[P, K, 3]`` to the front (in order) and pad with corner 0; also the count."""
+    K = poly.shape[1]
+    key = (~keep).to(torch.int64) * K + torch.arange(K, device=poly.device)
     order = torch.argsort(key, dim=1)
-    out = torch.gather(slots, 1, order[..., None].expand(-1, -1, 3))
-    count = valid.sum(1, keepdim=True)
-    pad = torch.arange(2 * K, device=poly.device)[None, :] >= count
-    return torch.where(pad[..., None], out[:, :1, :], out)
+    out = torch.gather(poly, 1, order[..., None].expand(-1, -1, 3))
+    count = keep.sum(1)
+    pad = torch.arange(K, device=poly.device)[None, :] >= count[:, None]
+    return torch.where(pad[..., None], out[:, :1, :], out), count
+
+
+def _rotate_to_plane_edge(poly: Tensor, point: Tensor, normal: Tensor, eps: float) -> Tensor:
+    """Rotate clipped polygons ``[P, K, 3]`` so that an edge lying on the clipping plane starts at corner 0."""
+    K = poly.shape[1]
+    poly, count = _compact(poly, (poly - torch.roll(poly, -1, 1)).norm(dim=-1) > eps)
+    count = count.clamp_min(1)
+    ar = torch.arange(K)[None, :]
+    real = ar < count[:, None]
+    nxt = torch.gather(poly, 1, ((ar + 1) % count[:, None])[..., None].expand(-1, -1, 3))
+    on = ((poly - point[:, None, :]) * normal[:, None, :]).sum(-1).abs() <= 4 * eps
+    on_next = ((nxt - point[:, None, :]) * normal[:, None, :]).sum(-1).abs() <= 4 * eps
+    edge = on & on_next & real
+    start = torch.where(edge.any(1), torch.argmax(edge.to(torch.int8), dim=1), torch.zeros_like(count))
+    idx = torch.where(real, (ar + start[:, None]) % count[:, None], start[:, None])
+    return torch.gather(poly, 1, idx[..., None].expand(-1, -1, 3))
 
 
 # ------------------------------------------------------------------------------- pair selection
@@ -254,7 +276,7 @@ def form_factors(
         rows, cols, vals, info = _quadrature(
             scene, occlusion, tol, adjacent_order, visibility_samples, chunk_points, progress
         )
-    areas = scene.areas.detach().to(torch.float64)
+    scene.areas.detach().to(torch.float64)
     out_dtype, dev = scene.dtype, scene.device
     if layout == "auto":
         nnz = rows.numel()
@@ -286,8 +308,7 @@ def _quadrature(
     areas = sc.areas
     diam = sc.diameters
     F = corners.shape[0]
-    size = float((corners.reshape(-1, 3).max(0).values - corners.reshape(-1, 3).min(0).values).norm())
-    eps = 1e-9 * size
+    eps = _plane_eps(scene)
     info: dict = {}
 
     t = time.perf_counter()
@@ -360,24 +381,30 @@ def _quadrature(
             points += p.numel() * Q
             bar.update(p.numel())
     if clipped.numel():
-        # the domain crosses the target's plane: integrate over the part in front of it, split into a fan of
-        # (at most three) triangles; the clipped target has at most five corners
-        for n in torch.unique(torch.maximum(order[clipped], torch.tensor(4))).tolist():
-            u, v, w = _rule("plain", int(n), torch.float64, torch.device("cpu"))
-            sub = clipped[torch.maximum(order[clipped], torch.tensor(4)) == n]
-            per = max(1, chunk_points // (3 * u.numel() * 5))
+        # the domain crosses the target's plane: integrate over the part in front of it. The clipped polygon
+        # (at most five corners) is rotated so that its edge on the target's plane, where the integrand is
+        # singular when the two touch, comes first; the fan triangle on that edge gets the edge-graded rule,
+        # the others (which touch it at one corner) the vertex-graded rule.
+        near = rho[clipped] < 1.0
+        n_clip = torch.where(near, torch.full_like(order[clipped], n_adj), order[clipped].clamp_min(4))
+        for n in torch.unique(n_clip).tolist():
+            rules = [_rule(kind, int(n), torch.float64, torch.device("cpu")) for kind in ("edge", "vertex")]
+            sub = clipped[n_clip == n]
+            per = max(1, chunk_points // (3 * rules[0][0].numel() * 5))
             for s in range(0, sub.numel(), per):
                 p = sub[s : s + per]
                 poly = _clip(cd[p], cent[tgt[p]], normals[tgt[p]], eps)[:, :5]
+                poly = _rotate_to_plane_edge(poly, cent[tgt[p]], normals[tgt[p]], eps)
                 target = _clip(ct[p], cent[dom[p]], normals[dom[p]], eps)[:, :5]
                 total = torch.zeros(p.numel(), dtype=torch.float64)
                 for k in range(1, 4):
+                    u, v, w = rules[0] if k == 1 else rules[1]
                     tri = torch.stack([poly[:, 0], poly[:, k], poly[:, k + 1], poly[:, k + 1]], dim=1)
                     x, jac = _bilinear(tri, u, v)
                     f = point_polygon_factor(x, normals[dom[p]], target)
                     total += (f * jac * w).sum(1)
+                    points += p.numel() * u.numel()
                 value[p] = total
-                points += 3 * p.numel() * u.numel()
                 bar.update(p.numel())
     bar.close()
     value = value.clamp_min(0.0)
@@ -397,6 +424,13 @@ def _quadrature(
     vals = torch.cat([value / areas[dom], value / areas[tgt]])
     keep = vals > 0
     return rows[keep], cols[keep], vals[keep], info
+
+
+def _plane_eps(scene: Scene) -> float:
+    """Distance (m) under which a point counts as on a plane: float noise of the scene's own dtype."""
+    c = scene.corners.detach().reshape(-1, 3).double()
+    size = float((c.max(0).values - c.min(0).values).norm())
+    return size * max(1e-9, 16.0 * torch.finfo(scene.dtype).eps)
 
 
 def _adjacent_order(tol: float) -> int:

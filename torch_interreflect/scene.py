@@ -209,7 +209,10 @@ class Scene:
             raise GeometryError(f"facet {bad} has non-finite corners: {c[bad].tolist()}")
         cd = c.double()
         diam = float((cd.reshape(-1, 3).max(0).values - cd.reshape(-1, 3).min(0).values).norm())
-        area = _areas(cd)
+        # fan area (sum of the two triangles' areas): a bow-tie quad is caught later, as non-convex
+        a, b, cc, d = cd.unbind(1)
+        area = 0.5 * torch.linalg.cross(b - a, cc - a, dim=-1).norm(dim=-1)
+        area = area + 0.5 * torch.linalg.cross(cc - a, d - a, dim=-1).norm(dim=-1)
         tiny = area <= AREA_RTOL * max(diam, 1e-300) ** 2
         if bool(tiny.any()):
             bad = int(torch.nonzero(tiny)[0])
