@@ -1,0 +1,75 @@
+import math
+
+import pytest
+import torch
+
+import torch_interreflect as ti
+from torch_interreflect.errors import ShapeError, ValueRangeError
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_directional_cosine_law_without_shadows(dtype):
+    s = ti.scenes.v_groove(90.0, divisions=1, dtype=dtype)
+    d = torch.tensor([-1.0, 0.0, -1.0], dtype=dtype)  # 45° from above, travelling toward -x
+    spd = torch.linspace(1.0, 2.0, 5, dtype=dtype)
+    E0 = ti.lights.directional(s, d, spd, shadows=False)
+    assert E0.shape == (2, 5) and E0.dtype == dtype
+    c = math.cos(math.radians(45.0))
+    torch.testing.assert_close(E0[0], c * spd)  # floor faces +z
+    torch.testing.assert_close(E0[1], c * spd)  # wall faces +x: the light comes from +x
+
+
+def test_v_groove_shadow_from_the_overhanging_plate():
+    # 45° groove, light straight down: plate B overhangs plate A up to x = w cos 45°
+    w = 0.06
+    s = ti.scenes.v_groove(45.0, size=(0.09, w), divisions=(1, 60), dtype=torch.float64)
+    lit = ti.lights.lit_fraction(s, torch.tensor([0.0, 0.0, -1.0]), samples=2)
+    plate_a = lit[:60]
+    x = s.centroids[:60, 0]
+    shadow_edge = w * math.cos(math.radians(45.0))
+    assert bool((plate_a[x < shadow_edge - 0.002] == 0).all())
+    assert bool((plate_a[x > shadow_edge + 0.002] == 1).all())
+    lit_area = float((plate_a * s.areas[:60]).sum() / s.areas[:60].sum())
+    assert abs(lit_area - (1 - shadow_edge / w)) < 0.01
+    assert bool((lit[60:] == 0).all())  # plate B faces away from the light
+
+
+def test_directional_batch_of_spectra_and_gradients():
+    s = ti.scenes.box_corner(divisions=2, dtype=torch.float64)
+    spd = torch.rand(4, 7, dtype=torch.float64, requires_grad=True)
+    E0 = ti.lights.directional(s, torch.tensor([-1.0, -2.0, -3.0], dtype=torch.float64), spd)
+    assert E0.shape == (4, s.num_facets, 7)
+    E0.sum().backward()
+    assert spd.grad is not None and bool((spd.grad > 0).all())
+
+
+def test_sky_is_pi_l_times_the_open_part():
+    s = ti.scenes.v_groove(90.0, size=(1.0, 1.0), divisions=1, dtype=torch.float64)
+    K = ti.form_factors(s)
+    E0 = ti.lights.sky(s, K, torch.tensor([2.0], dtype=torch.float64))
+    torch.testing.assert_close(E0[:, 0], torch.full((2,), 2 * math.pi * (1 - 0.2000438), dtype=torch.float64),
+                               rtol=1e-6, atol=0)
+    closed = ti.scenes.closed_box(divisions=2, dtype=torch.float64)
+    E0c = ti.lights.sky(closed, ti.form_factors(closed), torch.ones(3, dtype=torch.float64))
+    assert float(E0c.abs().max()) < 1e-5  # a closed box sees no sky
+
+
+def test_uniform_light():
+    s = ti.scenes.box_corner(divisions=1)
+    E0 = ti.lights.uniform(s, torch.ones(2, 31))
+    assert E0.shape == (2, 3, 31)
+
+
+def test_bad_light_input():
+    s = ti.scenes.box_corner(divisions=1)
+    with pytest.raises(ValueRangeError, match="non-negative"):
+        ti.lights.uniform(s, -torch.ones(3))
+    with pytest.raises(ValueRangeError, match="finite"):
+        ti.lights.directional(s, torch.tensor([0.0, 0, -1]), torch.tensor([math.nan]))
+    with pytest.raises(ValueRangeError, match="nonzero 3-vector"):
+        ti.lights.directional(s, torch.zeros(3), torch.ones(3))
+    with pytest.raises(ShapeError, match="3 components"):
+        ti.lights.directional(s, torch.ones(2), torch.ones(3))
+    other = ti.form_factors(ti.scenes.box_corner(divisions=2))
+    with pytest.raises(ShapeError, match="facets"):
+        ti.lights.sky(s, other, torch.ones(3))
