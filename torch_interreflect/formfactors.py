@@ -451,10 +451,11 @@ def _blocker_candidates(sc: Scene, dom: Tensor, tgt: Tensor, eps: float) -> Tens
     n_planes = int(plane_of.max()) + 1
     lo = corners.min(1).values
     hi = corners.max(1).values
-    plo = torch.full((n_planes, 3), math.inf, dtype=lo.dtype).index_reduce_(0, plane_of, lo, "amin")
-    phi = torch.full((n_planes, 3), -math.inf, dtype=hi.dtype).index_reduce_(0, plane_of, hi, "amax")
-    first = torch.zeros(n_planes, dtype=torch.int64).index_reduce_(
-        0, plane_of, torch.arange(len(plane_of)), "amin", include_self=False
+    idx3 = plane_of[:, None].expand(-1, 3)
+    plo = torch.full((n_planes, 3), math.inf, dtype=lo.dtype).scatter_reduce_(0, idx3, lo, "amin")
+    phi = torch.full((n_planes, 3), -math.inf, dtype=hi.dtype).scatter_reduce_(0, idx3, hi, "amax")
+    first = torch.full((n_planes,), len(plane_of), dtype=torch.int64).scatter_reduce_(
+        0, plane_of, torch.arange(len(plane_of)), "amin"
     )
     pn, po = normals[first], offs[first]
     need = torch.zeros(dom.numel(), dtype=torch.bool)
