@@ -6,7 +6,7 @@ from torch_interreflect.demo import DemoConfig, run_demo
 
 
 def test_demo_writes_its_outputs_and_the_numbers_make_sense(tmp_path):
-    res = run_demo(tmp_path, DemoConfig(angles=(45.0,), divisions=4), progress=False)
+    run_demo(tmp_path, DemoConfig(angles=(45.0,), divisions=4), progress=False)
     for name in ("form_factors.png", "images_45deg_D50.png", "images_45deg_A.png", "difference_vs_distance.png",
                  "table9.md", "results.json"):
         assert (tmp_path / name).stat().st_size > 0
