@@ -16,6 +16,7 @@ from .camera import Camera, spectral_to_rgb
 from .formfactors import form_factors
 from .kernel import FormFactors
 from .scene import Scene
+from .solve import radiance, solve
 
 __all__ = [
     "Camera",
@@ -25,8 +26,10 @@ __all__ = [
     "errors",
     "form_factors",
     "lights",
+    "radiance",
     "raycast",
     "scenes",
+    "solve",
     "spectral",
     "spectral_to_rgb",
 ]
