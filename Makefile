@@ -20,7 +20,7 @@ demo: $(STAMP)
 	$(BIN)/interreflect demo --out $(OUT)/demo
 
 lint: $(STAMP)
-	$(BIN)/ruff check torch_interreflect tests benchmarks examples
+	$(BIN)/ruff check .
 
 test: $(STAMP) lint
 	$(BIN)/python -m pytest -q -n 2
