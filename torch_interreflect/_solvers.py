@@ -378,7 +378,6 @@ def _dense(
     bytes_one = c * c * b.element_size()
     chunk = max(1, LU_CHUNK_BYTES // max(bytes_one, 1))
     keep = keep and k <= chunk
-    eye = torch.eye(c, dtype=b.dtype, device=b.device)
     sols = []
     lus, pivs = [], []
     for k0 in range(0, k, chunk):
@@ -386,8 +385,10 @@ def _dense(
         if lu_all is not None and piv_all is not None:
             lu, piv = lu_all[k0:k1], piv_all[k0:k1]
         else:
-            m = eye - f.unsqueeze(0) * uniq[:, k0:k1].T.unsqueeze(1)
+            m = f.unsqueeze(0) * uniq[:, k0:k1].T.unsqueeze(1)  # built in place: one [k, c, c] buffer
+            m.neg_().diagonal(dim1=-2, dim2=-1).add_(1)
             lu, piv, info = torch.linalg.lu_factor_ex(m)
+            del m
             if bool((info > 0).any()):
                 raise SingularSystemError(
                     "the interreflection system (I - F R) E = E0 is singular (zero pivot in the LU "

@@ -52,10 +52,12 @@ DEFAULT_MAX_ITER = {"cg": 10_000, "neumann": 100_000}
 #:   (measured on the closed box room of benchmarks/solver.py at r_max = 0.9: 10 iterations, bound 32).
 #: - SpMM (sparse ``F``): ``spmm_rate`` flop/s counting 2·nnz·N.
 #:
-#: Resulting crossover (``python benchmarks/solver.py --calibrate``, float64, r_max = 0.9, box room): with
-#: every column distinct (K = N) CG wins from F ≈ 40–64 (N = 31/248) on; with one grey reflectance column
-#: (K = 1) dense wins up to F ≈ 500 (N = 1) and beyond 576 for N ≥ 31 (dense then costs one LU plus two
-#: solves, CG ~12 products of the same width).
+#: Measured crossover (``OMP_NUM_THREADS=1 python benchmarks/solver.py --calibrate``: float64, r_max = 0.9,
+#: closed box room, forward time, dense vs cg): with every column distinct (K = N) CG wins from F ≈ 16 for
+#: N = 248 (F = 40: 8.1 vs 1.9 ms; F = 144: 93 vs 6.6 ms) and from F ≈ 64 for N = 31 (1.5 vs 1.1 ms); with one
+#: grey column (K = 1) dense wins for N ≥ 31 up to at least F = 576 (N = 248: 37 vs 142 ms) and CG wins for
+#: N = 1 from F ≈ 256 (2.2 vs 1.0 ms). The model picks the faster method in 28 of the 30 calibration cases
+#: (the two misses within 2×).
 AUTO_COST: dict[str, float] = {
     "gemm_peak": 9.6e10,
     "gemm_half": 35.0,
