@@ -23,7 +23,7 @@ lint: $(STAMP)
 	$(BIN)/ruff check .
 
 test: $(STAMP) lint
-	$(BIN)/python -m pytest -q -n 2
+	$(BIN)/python -m pytest -q -n 2 --doctest-modules torch_interreflect tests
 
 bench-solver: $(STAMP)
 	$(BIN)/python benchmarks/solver.py

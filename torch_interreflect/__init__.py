@@ -10,7 +10,7 @@ Example:
     32
 """
 
-from . import errors, lights, raycast, scenes, spectral
+from . import camera, errors, imaging, inverse, layers, lights, raycast, scenes, spectral
 from ._version import __version__
 from .camera import Camera, spectral_to_rgb
 from .formfactors import form_factors
@@ -23,8 +23,12 @@ __all__ = [
     "FormFactors",
     "Scene",
     "__version__",
+    "camera",
     "errors",
     "form_factors",
+    "imaging",
+    "inverse",
+    "layers",
     "lights",
     "radiance",
     "raycast",

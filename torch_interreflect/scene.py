@@ -113,8 +113,8 @@ class Scene:
         Example:
             >>> import torch, torch_interreflect as ti
             >>> tri = torch.tensor([[[0., 0, 0], [1, 0, 0], [0, 1, 0]]])
-            >>> ti.Scene.from_polygons(tri).normals
-            tensor([[0., 0., 1.]])
+            >>> ti.Scene.from_polygons(tri).normals.abs().tolist()
+            [[0.0, 0.0, 1.0]]
         """
         c = _as_tensor(corners, "corners")
         if c.ndim != 3 or c.shape[1] not in (3, 4) or c.shape[2] != 3:
