@@ -524,26 +524,33 @@ def _visibility(
 
     caster = RayCaster(sc)
     pts, wts = _facet_samples(sc.corners, n)  # [F, S, 3], [F, S]
-    normals = sc.normals
+    # float32 relative to the caster's origin: what Embree takes, and half the memory traffic
+    pts = (pts - torch.as_tensor(caster.origin)).float()
+    wts = wts.float()
+    normals = sc.normals.float()
     S = pts.shape[1]
     rays = 0
-    per = max(1, (1 << 20) // (S * S))
+    per = max(1, (1 << 19) // (S * S))
     for s in range(0, sel.numel(), per):
         p = sel[s : s + per]
         a, b = dom[p], tgt[p]
-        xa = pts[a][:, :, None, :].expand(-1, -1, S, -1)  # [c, S, S, 3]
-        xb = pts[b][:, None, :, :].expand(-1, S, -1, -1)
-        r = xb - xa
-        d2 = (r * r).sum(-1).clamp_min(1e-300)
+        xa = pts[a][:, :, None, :]  # [c, S, 1, 3]
+        r = pts[b][:, None, :, :] - xa  # [c, S, S, 3]
+        d2 = (r * r).sum(-1).clamp_min(1e-30)
+        length = d2.sqrt()
         cos_a = (r * normals[a][:, None, None, :]).sum(-1).clamp_min(0)
         cos_b = (-(r * normals[b][:, None, None, :]).sum(-1)).clamp_min(0)
         k = cos_a * cos_b / (d2 * d2) * wts[a][:, :, None] * wts[b][:, None, :]
-        blocked = caster.segments_blocked(xa.reshape(-1, 3).numpy(), xb.reshape(-1, 3).numpy())
-        blocked_t = torch.from_numpy(blocked).reshape(k.shape)
-        num = (k * (~blocked_t)).sum((1, 2))
+        direction = r / length[..., None]
+        origin = xa + caster.eps * direction
+        blocked = torch.from_numpy(
+            caster.occluded(origin.reshape(-1, 3).numpy(), direction.reshape(-1, 3).numpy(),
+                            (length - 2 * caster.eps).reshape(-1).numpy())
+        ).reshape(k.shape)
+        num = (k * (~blocked)).sum((1, 2))
         den = k.sum((1, 2))
-        vis[p] = torch.where(den > 0, num / den.clamp_min(1e-300), torch.ones_like(den))
-        rays += int(blocked.size)
+        vis[p] = torch.where(den > 0, num / den.clamp_min(1e-30), torch.ones_like(den)).double()
+        rays += int(blocked.numel())
     return vis, int(sel.numel()), rays
 
 

@@ -34,6 +34,8 @@ class RayCaster:
         self._owner = np.asarray(owner, dtype=np.int64)
         tris = np.asarray(mesh.triangles, dtype=np.float64)
         self._origin = tris.reshape(-1, 3).mean(0)  # re-centre: float32 keeps more digits near 0
+        #: the point (m) that Embree's coordinates are relative to (see :meth:`occluded`)
+        self.origin = self._origin
         self._scene = rtcore_scene.EmbreeScene()
         TriangleMesh(self._scene, (tris - self._origin).astype(np.float32))
         lo, hi = tris.reshape(-1, 3).min(0), tris.reshape(-1, 3).max(0)
@@ -65,6 +67,23 @@ class RayCaster:
                                   query="OCCLUDED")
             out[s : s + batch] = (np.asarray(res) != -1) & (tfar > 0)
         return out
+
+    def occluded(self, origins: np.ndarray, directions: np.ndarray, tfar: np.ndarray) -> np.ndarray:
+        """Raw occlusion query: is anything hit within ``tfar`` along each ray?
+
+        Args:
+            origins: Ray origins relative to :attr:`origin`, float32 ``[N, 3]``.
+            directions: Unit directions, float32 ``[N, 3]``.
+            tfar: Distances in metres, float32 ``[N]`` (non-positive: never occluded).
+
+        Returns:
+            Boolean ``[N]``.
+        """
+        o = np.ascontiguousarray(origins, dtype=np.float32)
+        d = np.ascontiguousarray(directions, dtype=np.float32)
+        t = np.ascontiguousarray(tfar, dtype=np.float32)
+        res = np.asarray(self._scene.run(o, d, dists=np.maximum(t, 0), query="OCCLUDED"))
+        return (res != -1) & (t > 0)
 
     def first_hit(self, origins: np.ndarray, directions: np.ndarray, batch: int = 1 << 20) -> np.ndarray:
         """Index of the first facet hit by each ray (``-1`` when it escapes).
