@@ -6,7 +6,7 @@ BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed-dev
 OUT    ?= out
 
-.PHONY: install demo test lint bench bench-solver clean
+.PHONY: install demo test lint bench bench-solver bench-formfactors clean
 
 $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
@@ -25,10 +25,13 @@ lint: $(STAMP)
 test: $(STAMP) lint
 	$(BIN)/python -m pytest -q -n 2 --doctest-modules torch_interreflect tests
 
+bench-formfactors: $(STAMP)
+	$(BIN)/python benchmarks/formfactors.py --quick
+
 bench-solver: $(STAMP)
 	$(BIN)/python benchmarks/solver.py
 
-bench: bench-solver
+bench: bench-formfactors bench-solver
 
 clean:
 	rm -rf $(OUT) .pytest_cache .ruff_cache
