@@ -462,13 +462,15 @@ def _adjacent_order(tol: float) -> int:
 
 # ------------------------------------------------------------------------------------- visibility
 def _blocker_candidates(sc: Scene, dom: Tensor, tgt: Tensor, eps: float) -> Tensor:
-    """Pairs that some third facet could block: its plane strictly separates corners of the pair and its
-    bounding box overlaps the pair's. Works per plane group (coplanar facets), so cost is pairs × planes."""
-    corners, normals = sc.corners, sc.normals
-    offs = (normals * sc.centroids).sum(-1)
-    # group facets by plane (rounded normal and offset)
-    key = torch.cat([normals, offs[:, None] / max(eps * 1e9, 1e-300)], dim=1)
-    key = torch.round(key * 1e6)
+    """Pairs that some third facet could block. Conservative tests per plane group (coplanar facets), so the
+    cost is pairs × planes: the group's plane strictly separates corners of the pair, its bounding box overlaps
+    the pair's, and its bounding sphere comes within reach of the pair's convex hull (which lies inside the
+    capsule around the segment between the two centroids, of radius the larger facet radius)."""
+    corners, normals, cent = sc.corners, sc.normals, sc.centroids
+    offs = (normals * cent).sum(-1)
+    size = float((corners.reshape(-1, 3).max(0).values - corners.reshape(-1, 3).min(0).values).norm())
+    # group facets by plane (rounded normal and offset): a finer key only splits groups, which stays conservative
+    key = torch.round(torch.cat([normals, offs[:, None] / size], dim=1) * 1e7)
     _, plane_of = torch.unique(key, dim=0, return_inverse=True)
     n_planes = int(plane_of.max()) + 1
     lo = corners.min(1).values
@@ -488,6 +490,8 @@ def _blocker_candidates(sc: Scene, dom: Tensor, tgt: Tensor, eps: float) -> Tens
         return need
     pn, po, plo, phi = pn[useful], po[useful], plo[useful], phi[useful]
     n_planes = int(useful.sum())
+    g_centre, g_radius = 0.5 * (plo + phi), 0.5 * (phi - plo).norm(dim=-1)
+    radius = (corners - cent[:, None, :]).norm(dim=-1).max(dim=1).values
     chunk = max(1, (1 << 22) // (8 * n_planes))
     for s in range(0, dom.numel(), chunk):
         a, b = dom[s : s + chunk], tgt[s : s + chunk]
@@ -497,7 +501,13 @@ def _blocker_candidates(sc: Scene, dom: Tensor, tgt: Tensor, eps: float) -> Tens
         blo = torch.minimum(lo[a], lo[b])
         bhi = torch.maximum(hi[a], hi[b])
         overlap = ((plo[None] < bhi[:, None] - eps) & (phi[None] > blo[:, None] + eps)).all(-1)
-        need[s : s + chunk] = (straddle & overlap).any(-1)
+        ca, seg = cent[a], cent[b] - cent[a]
+        t = ((g_centre[None] - ca[:, None]) * seg[:, None]).sum(-1) / (seg * seg).sum(-1).clamp_min(1e-300)[:, None]
+        closest = ca[:, None] + t.clamp(0, 1)[..., None] * seg[:, None]
+        reach = (g_centre[None] - closest).norm(dim=-1) <= (
+            torch.maximum(radius[a], radius[b])[:, None] + g_radius[None] + eps
+        )
+        need[s : s + chunk] = (straddle & overlap & reach).any(-1)
     return need
 
 
