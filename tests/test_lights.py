@@ -73,3 +73,29 @@ def test_bad_light_input():
     other = ti.form_factors(ti.scenes.box_corner(divisions=2))
     with pytest.raises(ShapeError, match="facets"):
         ti.lights.sky(s, other, torch.ones(3))
+
+
+def test_sky_discounts_back_faces_seen_from_under_a_block():
+    # a unit floor with a bottomless box over its centre quarter: that quarter sees only the box's inside
+    floor = ti.scenes.grid_quads([0, 0, 0], [1, 0, 0], [0, 1, 0], 1, 1)
+    lo, hi, h = 0.25, 0.75, 0.3
+    ex, ey, ez = [hi - lo, 0, 0], [0, hi - lo, 0], [0, 0, h]
+    box = [
+        ti.scenes.grid_quads([lo, lo, h], ex, ey, 1, 1),  # lid, facing up
+        ti.scenes.grid_quads([lo, lo, 0], ez, ex, 1, 1),  # side y=lo, facing -y
+        ti.scenes.grid_quads([lo, hi, 0], ex, ez, 1, 1),  # side y=hi, facing +y
+        ti.scenes.grid_quads([lo, lo, 0], ey, ez, 1, 1),  # side x=lo, facing -x
+        ti.scenes.grid_quads([hi, lo, 0], ez, ey, 1, 1),  # side x=hi, facing +x
+    ]
+    import numpy as np
+
+    scene = ti.Scene.from_polygons(torch.tensor(np.concatenate([floor, *box]), dtype=torch.float64))
+    b = ti.lights.back_coverage(scene)
+    assert abs(float(b[0]) - 0.25) < 1e-12  # 16 of the 8 × 8 points lie under the box, fully covered
+    assert bool((b[1:] == 0).all())
+    K = ti.form_factors(scene)
+    E0 = ti.lights.sky(scene, K, torch.ones(1, dtype=torch.float64))
+    expected = math.pi * (1 - float(K.row_sums()[0]) - 0.25)
+    assert abs(float(E0[0, 0]) - expected) < 1e-9
+    plain = ti.lights.sky(scene, K, torch.ones(1, dtype=torch.float64), backfaces=False)
+    assert float(plain[0, 0]) > float(E0[0, 0])

@@ -17,7 +17,7 @@ from .errors import ShapeError, ValueRangeError
 from .kernel import FormFactors
 from .scene import Scene
 
-__all__ = ["directional", "lit_fraction", "sky", "uniform"]
+__all__ = ["back_coverage", "directional", "lit_fraction", "sky", "uniform"]
 
 
 def _check_spd(spd: Tensor, name: str) -> Tensor:
@@ -126,16 +126,29 @@ def directional(
     return (cos * lit)[:, None] * spd[..., None, :]
 
 
-def sky(scene: Scene, form_factors: FormFactors, spd: Tensor) -> Tensor:
-    """Direct irradiance from a uniform diffuse sky of radiance ``spd``: ``E0_i = π L (1 − Σ_j F_ij)``.
+def sky(
+    scene: Scene,
+    form_factors: FormFactors,
+    spd: Tensor,
+    *,
+    backfaces: Literal["auto"] | bool = "auto",
+    samples: int = 12,
+) -> Tensor:
+    """Direct irradiance from a uniform diffuse sky of radiance ``spd``: ``E0_i = π L (1 − Σ_j F_ij − b_i)``.
 
-    The part of each facet's hemisphere that sees no facet sees the sky, so with an occlusion-aware ``F``
-    this is exact.
+    The part of each facet's hemisphere that sees no facet sees the sky. ``F`` counts only the facets whose
+    front side a facet sees; ``b_i`` is the part of its hemisphere covered by the *back* of other facets (a
+    floor under a block without a bottom sees the block's inside), estimated by ray casting where it can be
+    nonzero. With an occlusion-aware ``F`` the result is exact where no back faces are in view.
 
     Args:
-        scene: The scene (for validation).
+        scene: The scene.
         form_factors: Its form factors.
         spd: Sky radiance, W·sr⁻¹·m⁻²·nm⁻¹, shape ``[..., L]``.
+        backfaces: ``"auto"`` estimates ``b_i`` only for facets that have another facet's back in front of
+            them; ``True`` for every facet; ``False`` never (``b = 0``).
+        samples: Stratified cosine-weighted directions per axis (``samples²`` per point, 8 × 8 points per
+            facet) for ``b``.
 
     Shape:
         - output: ``[..., F, L]``
@@ -152,8 +165,71 @@ def sky(scene: Scene, form_factors: FormFactors, spd: Tensor) -> Tensor:
         raise ShapeError(
             f"form_factors has {form_factors.num_facets} facets but the scene has {scene.num_facets}"
         )
-    open_part = (1.0 - form_factors.row_sums().to(spd.dtype).to(spd.device)).clamp_min(0)
+    if backfaces not in ("auto", True, False):
+        raise ValueError(f"backfaces must be 'auto', True or False; got {backfaces!r}")
+    open_part = 1.0 - form_factors.row_sums().detach().to(torch.float64).cpu()
+    if backfaces is not False:
+        open_part = open_part - back_coverage(scene, only_where_possible=backfaces == "auto", samples=samples)
+    open_part = open_part.clamp_min(0).to(spd.dtype).to(spd.device)
     return math.pi * open_part[:, None] * spd[..., None, :]
+
+
+def back_coverage(
+    scene: Scene, *, only_where_possible: bool = True, samples: int = 12, points: int = 8
+) -> Tensor:
+    """Fraction of each facet's cosine-weighted hemisphere that sees the back side of some facet.
+
+    Estimated with stratified cosine-weighted rays (``samples²`` directions from each of ``points²`` midpoint
+    points per facet), first hits only, so occlusion is included.
+
+    Args:
+        scene: The scene.
+        only_where_possible: Cast rays only from facets that have a facet in front of them which they see from
+            behind (all others get exactly 0).
+        samples: Directions per axis.
+        points: Points per axis on each facet.
+
+    Returns:
+        ``b [F]`` in [0, 1], float64 on the CPU.
+    """
+    from .formfactors import _bilinear, _facing, _plane_eps
+
+    sc = scene.to(torch.float64).to("cpu")
+    F = sc.num_facets
+    b = torch.zeros(F, dtype=torch.float64)
+    if only_where_possible:
+        front = _facing(sc.corners, sc.normals, sc.centroids, _plane_eps(scene), chunk=max(1, (1 << 22) // (4 * F)))
+        front.fill_diagonal_(False)
+        idx = torch.nonzero((front & ~front.T).any(1)).reshape(-1)
+    else:
+        idx = torch.arange(F)
+    if idx.numel() == 0:
+        return b
+    from .raycast import RayCaster
+
+    n = int(samples)
+    g = (torch.arange(n, dtype=torch.float64) + 0.5) / n
+    r1, r2 = g.repeat_interleave(n), g.repeat(n)  # stratified unit square → cosine-weighted hemisphere
+    rad, ang = r1.sqrt(), 2 * math.pi * r2
+    local = torch.stack([rad * ang.cos(), rad * ang.sin(), (1 - r1).clamp_min(0).sqrt()], dim=-1)  # [D, 3]
+    normals = sc.normals[idx]
+    helper = torch.where(normals[:, :1].abs() < 0.9, torch.tensor([1.0, 0, 0], dtype=torch.float64),
+                         torch.tensor([0.0, 1, 0], dtype=torch.float64))
+    t1 = torch.linalg.cross(normals, helper, dim=-1)
+    t1 = t1 / t1.norm(dim=-1, keepdim=True)
+    t2 = torch.linalg.cross(normals, t1, dim=-1)
+    lx, ly, lz = (local[None, :, c, None] for c in range(3))
+    dirs = lx * t1[:, None] + ly * t2[:, None] + lz * normals[:, None]  # [k, D, 3]
+    q = (torch.arange(points, dtype=torch.float64) + 0.5) / points
+    pts, jac = _bilinear(sc.corners[idx], q.repeat_interleave(points), q.repeat(points))  # [k, P, 3]
+    o = pts[:, :, None, :].expand(-1, -1, dirs.shape[1], -1)
+    d = dirs[:, None, :, :].expand(-1, pts.shape[1], -1, -1)
+    hit = torch.from_numpy(RayCaster(sc).first_hit(o.reshape(-1, 3).numpy(), d.reshape(-1, 3).numpy()))
+    hit = hit.reshape(d.shape[:-1])
+    back = (hit >= 0) & ((d * sc.normals[hit.clamp_min(0)]).sum(-1) > 0)
+    w = jac / jac.sum(1, keepdim=True)
+    b[idx] = (back.to(torch.float64).mean(-1) * w).sum(1)
+    return b
 
 
 def uniform(scene: Scene, spd: Tensor) -> Tensor:
