@@ -82,10 +82,10 @@ def test_sky_discounts_back_faces_seen_from_under_a_block():
     ex, ey, ez = [hi - lo, 0, 0], [0, hi - lo, 0], [0, 0, h]
     box = [
         ti.scenes.grid_quads([lo, lo, h], ex, ey, 1, 1),  # lid, facing up
-        ti.scenes.grid_quads([lo, lo, 0], ez, ex, 1, 1),  # side y=lo, facing -y
-        ti.scenes.grid_quads([lo, hi, 0], ex, ez, 1, 1),  # side y=hi, facing +y
-        ti.scenes.grid_quads([lo, lo, 0], ey, ez, 1, 1),  # side x=lo, facing -x
-        ti.scenes.grid_quads([hi, lo, 0], ez, ey, 1, 1),  # side x=hi, facing +x
+        ti.scenes.grid_quads([lo, lo, 0], ex, ez, 1, 1),  # side y=lo, facing -y (normal = a × b)
+        ti.scenes.grid_quads([lo, hi, 0], ez, ex, 1, 1),  # side y=hi, facing +y
+        ti.scenes.grid_quads([lo, lo, 0], ez, ey, 1, 1),  # side x=lo, facing -x
+        ti.scenes.grid_quads([hi, lo, 0], ey, ez, 1, 1),  # side x=hi, facing +x
     ]
     import numpy as np
 
