@@ -469,8 +469,10 @@ def _blocker_candidates(sc: Scene, dom: Tensor, tgt: Tensor, eps: float) -> Tens
     corners, normals, cent = sc.corners, sc.normals, sc.centroids
     offs = (normals * cent).sum(-1)
     size = float((corners.reshape(-1, 3).max(0).values - corners.reshape(-1, 3).min(0).values).norm())
-    # group facets by plane (rounded normal and offset): a finer key only splits groups, which stays conservative
-    key = torch.round(torch.cat([normals, offs[:, None] / size], dim=1) * 1e7)
+    # group facets by plane (normal and offset rounded well above the float noise of the scene's dtype; a
+    # boundary between two rounding cells only splits a group, which stays conservative)
+    res = max(1e-6, 100.0 * eps / size)
+    key = torch.round(torch.cat([normals, offs[:, None] / size], dim=1) / res)
     _, plane_of = torch.unique(key, dim=0, return_inverse=True)
     n_planes = int(plane_of.max()) + 1
     lo = corners.min(1).values
