@@ -6,7 +6,7 @@ BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed-dev
 OUT    ?= out
 
-.PHONY: install demo test lint bench bench-solver bench-formfactors clean
+.PHONY: install demo train-cc test lint bench bench-solver bench-formfactors clean
 
 $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
@@ -18,6 +18,9 @@ install: $(STAMP)
 
 demo: $(STAMP)
 	$(BIN)/interreflect demo --out $(OUT)/demo
+
+train-cc: $(STAMP)
+	$(BIN)/interreflect train-cc --data $(OUT)/cc-data
 
 lint: $(STAMP)
 	$(BIN)/ruff check .

@@ -10,7 +10,7 @@ Example:
     32
 """
 
-from . import camera, errors, imaging, inverse, layers, lights, raycast, scenes, spectral
+from . import camera, errors, imaging, inverse, layers, lights, raycast, scenes, spectral, training
 from ._version import __version__
 from .camera import Camera, spectral_to_rgb
 from .formfactors import form_factors
@@ -36,4 +36,5 @@ __all__ = [
     "solve",
     "spectral",
     "spectral_to_rgb",
+    "training",
 ]

@@ -1,0 +1,145 @@
+"""The synthetic data generator: determinism, resumability, shards, file formats, sidecars."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+import torch_interreflect as ti
+from torch_interreflect.training import generator as g
+from torch_interreflect.training.pngio import encode_png16, read_png16, write_png16
+
+CFG = g.GeneratorConfig(count=5, seed=7, scenes=("v_groove", "box_corner", "cornell", "mesh"), size=(12, 16))
+
+
+def _files(root: Path) -> dict[str, bytes]:
+    return {str(p.relative_to(root)): p.read_bytes() for p in sorted(root.rglob("*")) if p.is_file()}
+
+
+def _samples(root: Path) -> dict[str, bytes]:
+    return {k: v for k, v in _files(root).items() if not k.startswith(g.MANIFEST_DIR)}
+
+
+@pytest.fixture(scope="module")
+def full_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    out = tmp_path_factory.mktemp("full")
+    res = g.generate(out, CFG, progress=False)
+    assert res.written == list(range(CFG.count)) and res.skipped == []
+    return out
+
+
+def test_same_seed_gives_identical_files(full_run: Path, tmp_path: Path) -> None:
+    res = g.generate(tmp_path, CFG, progress=False)
+    assert len(res.written) == CFG.count
+    a, b = _files(full_run), _files(tmp_path)
+    assert a.keys() == b.keys()
+    assert all(a[k] == b[k] for k in a)
+    names = set(a)
+    for i in range(CFG.count):
+        assert set(g.sample_files(CFG, i)) <= names
+    # another seed gives other images
+    other = g.render_sample(g.GeneratorConfig(**{**CFG.__dict__, "seed": 8}), 0)
+    assert not np.array_equal(other.images[None], np.load(full_run / "000000.npy"))
+
+
+def test_interrupted_run_resumes_to_the_same_result(full_run: Path, tmp_path: Path) -> None:
+    first = g.generate(tmp_path, CFG, progress=False, limit=2)
+    assert first.written == [0, 1]
+    manifest = json.loads((tmp_path / g.MANIFEST_DIR / "shard-0000-of-0001.json").read_text())
+    assert manifest["done"] == [0, 1] and not manifest["complete"]
+    # a half-written sample: files present but no sidecar, plus a stale temporary file
+    (tmp_path / "000002.npy").write_bytes(b"garbage")
+    (tmp_path / ".000002.png.tmp123").write_bytes(b"garbage")
+    assert not g.is_complete(tmp_path, 2)
+    second = g.generate(tmp_path, CFG, progress=False)
+    assert second.skipped == [0, 1] and second.written == [2, 3, 4]
+    (tmp_path / ".000002.png.tmp123").unlink()
+    assert _files(tmp_path) == _files(full_run)
+    # a sample with a missing file is redone
+    (tmp_path / "000003_b1.png").unlink()
+    third = g.generate(tmp_path, CFG, progress=False)
+    assert third.written == [3] and _files(tmp_path) == _files(full_run)
+
+
+def test_shards_partition_indices_and_reproduce_the_unsharded_run(full_run: Path, tmp_path: Path) -> None:
+    for count in (0, 1, 7, 10):
+        for n in (1, 2, 3, 5):
+            parts = [list(g.shard_indices(count, i, n)) for i in range(n)]
+            flat = sorted(k for p in parts for k in p)
+            assert flat == list(range(count))  # covers everything, no index twice
+    for i in (1, 0):  # any order
+        g.generate(tmp_path, CFG, shard=(i, 2), progress=False)
+    assert _samples(tmp_path) == _samples(full_run)
+    for i, expected in ((0, [0, 2, 4]), (1, [1, 3])):
+        m = json.loads((tmp_path / g.MANIFEST_DIR / f"shard-{i:04d}-of-0002.json").read_text())
+        assert m["done"] == expected and m["complete"]
+    with pytest.raises(ValueError, match="shard"):
+        g.shard_indices(4, 2, 2)
+    with pytest.raises(ValueError, match="i/n"):
+        g.parse_shard("1-2")
+
+
+def test_other_config_in_the_same_folder_is_refused(full_run: Path) -> None:
+    with pytest.raises(ValueError, match="another configuration"):
+        g.generate(full_run, g.GeneratorConfig(**{**CFG.__dict__, "seed": 99}), progress=False)
+
+
+def test_sample_content(full_run: Path) -> None:
+    meta = json.loads((full_run / "000001.json").read_text())
+    assert meta["version"] == ti.__version__ and meta["seed"] == CFG.seed and meta["index"] == 1
+    ill = meta["illuminant"]
+    wl = torch.tensor(ill["wavelengths"], dtype=torch.float64)
+    cam = ti.Camera.from_colour(CFG.camera, wl)
+    rgb = cam(torch.tensor(ill["spd"], dtype=torch.float64)[None] / math.pi)[0]
+    torch.testing.assert_close(rgb, torch.tensor(ill["rgb"], dtype=torch.float64), rtol=1e-5, atol=0)
+    assert abs(np.linalg.norm(ill["rgb_normalized"]) - 1) < 1e-6
+    img = np.load(full_run / "000001.npy")
+    assert img.dtype == np.float32 and img.shape == (12, 16, 3)
+    png = read_png16(full_run / "000001.png")
+    assert png.dtype == np.uint16 and png.shape == (12, 16, 3)
+    np.testing.assert_array_equal(png, np.round(np.clip(img, 0, 1) * 65535).astype(np.uint16))
+    # more bounces, more light: direct ≤ 2 bounces ≤ ∞ (same exposure)
+    for i in range(CFG.count):
+        b1, b2, inf = (np.load(full_run / f"{i:06d}{s}.npy") for s in ("_b1", "_b2", ""))
+        assert (b1 <= b2 + 1e-6).all() and (b2 <= inf + 1e-6).all() and (inf > b1 + 1e-4).any()
+    geo = g.load_geometry(full_run / "000001_geometry.npz")
+    assert geo["coverage"].shape == (12 * 16, meta["num_facets"])
+    assert geo["reflectance"].shape == (len(meta["materials"]), wl.numel())
+
+
+def test_png_writer_round_trip_and_pillow(tmp_path: Path) -> None:
+    a = np.random.default_rng(0).integers(0, 65536, (5, 7, 3)).astype(np.uint16)
+    write_png16(tmp_path / "a.png", a)
+    np.testing.assert_array_equal(read_png16(tmp_path / "a.png"), a)
+    assert encode_png16(a) == encode_png16(a.copy())
+    with pytest.raises(ValueError, match="uint16"):
+        encode_png16(a.astype(np.float32))
+    PIL = pytest.importorskip("PIL.Image")
+    with PIL.open(tmp_path / "a.png") as im:
+        assert im.size == (7, 5)
+        im.load()
+
+
+def test_cli(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    argv = ["--out", str(tmp_path), "--count", "2", "--seed", "3", "--scenes", "v_groove", "--size", "8x10",
+            "--bounces", "inf", "1", "--no-geometry", "--no-progress", "--shard", "1/2"]
+    assert g.main_generate(argv) == 0
+    assert "samples/s" in capsys.readouterr().out
+    assert sorted(p.name for p in tmp_path.iterdir() if p.is_file()) == [
+        "000001.json", "000001.npy", "000001.png", "000001_b1.npy", "000001_b1.png", "dataset.json"]
+    with pytest.raises(SystemExit):
+        g.main_generate(["--out", str(tmp_path), "--count", "2", "--size", "8by10"])
+
+
+def test_bad_configs() -> None:
+    with pytest.raises(ValueError, match="scenes"):
+        g.GeneratorConfig(scenes=("sphere",))
+    with pytest.raises(ValueError, match="bounces"):
+        g.GeneratorConfig(bounces=(1, 2))
+    with pytest.raises(ValueError, match="count"):
+        g.GeneratorConfig(count=-1)

@@ -1,0 +1,79 @@
+"""Synthetic data and colour-constancy training with exact interreflection.
+
+- Data: :func:`generate` / :class:`GeneratorConfig` (``interreflect generate``), :func:`render_sample`,
+  random scenes, reflectances, illuminants, lights and views in :mod:`.random_scenes`.
+- Datasets: :class:`GeneratedDataset` (a generated folder), :class:`RenderedDataset` (on the fly),
+  :func:`collate`, :func:`split_indices`.
+- Metrics: :func:`angular_error`, :func:`angular_loss`, :func:`summarize` (mean, median, tri-mean, best/worst 25 %).
+- Baselines: :func:`grey_world`, :func:`white_patch`, :func:`grey_edge`.
+- Models: :class:`FC4Net`, :class:`PhysicsInformedNet`, :func:`physics_loss`.
+- Recipe: :func:`run_train_cc` / :class:`TrainConfig` (``interreflect train-cc``).
+"""
+
+from .baselines import BASELINES, grey_edge, grey_world, white_patch
+from .datasets import GeneratedDataset, RenderedDataset, collate, split_indices
+from .generator import (
+    GenerateResult,
+    GeneratorConfig,
+    Sample,
+    add_generate_parser,
+    generate,
+    is_complete,
+    load_geometry,
+    main_generate,
+    render_sample,
+    shard_indices,
+)
+from .metrics import angular_error, angular_loss, format_table, summarize
+from .models import FC4Net, PhysicsInformedNet, physics_loss
+from .random_scenes import (
+    ILLUMINANT_KINDS,
+    SCENE_KINDS,
+    random_illuminant,
+    random_light,
+    random_reflectances,
+    random_scene,
+    random_view,
+)
+from .train import TrainConfig, add_train_parser, evaluate, main_train, run_train_cc, train_model
+
+__all__ = [
+    "BASELINES",
+    "ILLUMINANT_KINDS",
+    "SCENE_KINDS",
+    "FC4Net",
+    "GenerateResult",
+    "GeneratedDataset",
+    "GeneratorConfig",
+    "PhysicsInformedNet",
+    "RenderedDataset",
+    "Sample",
+    "TrainConfig",
+    "add_generate_parser",
+    "add_train_parser",
+    "angular_error",
+    "angular_loss",
+    "collate",
+    "evaluate",
+    "format_table",
+    "generate",
+    "grey_edge",
+    "grey_world",
+    "is_complete",
+    "load_geometry",
+    "main_generate",
+    "main_train",
+    "physics_loss",
+    "random_illuminant",
+    "random_light",
+    "random_reflectances",
+    "random_scene",
+    "random_view",
+    "render_sample",
+    "run_train_cc",
+    "shard_indices",
+    "split_indices",
+    "summarize",
+    "train_model",
+    "white_patch",
+]
