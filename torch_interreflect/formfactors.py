@@ -330,7 +330,7 @@ def _quadrature(
     info["seconds_cull"] = time.perf_counter() - t
     if iu.numel() == 0:
         empty = torch.zeros(0, dtype=torch.int64)
-        info.update(points=0, rays=0, occluded_pairs=0)
+        info.update(points=0, rays=0, occluded_pairs=0, occluded_facets=torch.zeros(F, dtype=torch.bool))
         return empty, empty, torch.zeros(0, dtype=torch.float64), info
 
     # integrate over the smaller facet of each pair (the "domain"), contour over the other ("target")
@@ -437,9 +437,14 @@ def _quadrature(
 
     # occlusion
     t = time.perf_counter()
-    vis, n_occ, n_rays = _visibility(sc, dom, tgt, occlusion, visibility_samples, eps)
+    vis, occluded, n_rays = _visibility(sc, dom, tgt, occlusion, visibility_samples, eps)
     value = value * vis
-    info.update(occluded_pairs=n_occ, rays=n_rays, seconds_visibility=time.perf_counter() - t)
+    # facets with a pair whose visibility was estimated by rays: their row sums are estimates, not exact
+    approx = torch.zeros(F, dtype=torch.bool)
+    approx[dom[occluded]] = True
+    approx[tgt[occluded]] = True
+    info.update(occluded_pairs=int(occluded.numel()), rays=n_rays, seconds_visibility=time.perf_counter() - t,
+                occluded_facets=approx)
 
     rows = torch.cat([dom, tgt])
     cols = torch.cat([tgt, dom])
@@ -524,14 +529,16 @@ def _facet_samples(corners: Tensor, n: int) -> tuple[Tensor, Tensor]:
 
 def _visibility(
     sc: Scene, dom: Tensor, tgt: Tensor, occlusion: Literal["auto"] | bool, n: int, eps: float
-) -> tuple[Tensor, int, int]:
+) -> tuple[Tensor, Tensor, int]:
+    """Kernel-weighted visible fraction per pair, the indices of the pairs that cast rays, and the ray count."""
     vis = torch.ones(dom.numel(), dtype=torch.float64)
+    none = torch.zeros(0, dtype=torch.int64)
     if occlusion is False or dom.numel() == 0:
-        return vis, 0, 0
+        return vis, none, 0
     need = torch.ones_like(vis, dtype=torch.bool) if occlusion is True else _blocker_candidates(sc, dom, tgt, eps)
     sel = torch.nonzero(need).reshape(-1)
     if sel.numel() == 0:
-        return vis, 0, 0
+        return vis, none, 0
     from .raycast import RayCaster
 
     caster = RayCaster(sc)
@@ -563,7 +570,7 @@ def _visibility(
         den = k.sum((1, 2))
         vis[p] = torch.where(den > 0, num / den.clamp_min(1e-30), torch.ones_like(den)).double()
         rays += int(blocked.numel())
-    return vis, int(sel.numel()), rays
+    return vis, sel, rays
 
 
 # ------------------------------------------------------------------------------------ Monte Carlo

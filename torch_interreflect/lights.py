@@ -170,6 +170,13 @@ def sky(
     open_part = 1.0 - form_factors.row_sums().detach().to(torch.float64).cpu()
     if backfaces is not False:
         open_part = open_part - back_coverage(scene, only_where_possible=backfaces == "auto", samples=samples)
+    approx = form_factors.info.get("occluded_facets")
+    if backfaces is not False and approx is not None and bool(approx.any()):
+        # where rows of F rest on ray-cast visibility, 1 − Σ_j F_ij is a small difference of estimates: count the
+        # escaping rays directly instead (both sides of every facet block the sky)
+        idx = torch.nonzero(approx.cpu()).reshape(-1)
+        escape, _ = _hemisphere_fractions(scene.to(torch.float64).to("cpu"), idx, samples=samples, points=8)
+        open_part[idx] = escape
     open_part = open_part.clamp_min(0).to(spd.dtype).to(spd.device)
     return math.pi * open_part[:, None] * spd[..., None, :]
 
@@ -192,7 +199,7 @@ def back_coverage(
     Returns:
         ``b [F]`` in [0, 1], float64 on the CPU.
     """
-    from .formfactors import _bilinear, _facing, _plane_eps
+    from .formfactors import _facing, _plane_eps
 
     sc = scene.to(torch.float64).to("cpu")
     F = sc.num_facets
@@ -205,6 +212,17 @@ def back_coverage(
         idx = torch.arange(F)
     if idx.numel() == 0:
         return b
+    b[idx] = _hemisphere_fractions(sc, idx, samples=samples, points=points)[1]
+    return b
+
+
+def _hemisphere_fractions(sc: Scene, idx: Tensor, *, samples: int, points: int) -> tuple[Tensor, Tensor]:
+    """Cosine-weighted fractions of the hemispheres of facets ``idx`` that escape the scene / hit a back face.
+
+    Stratified cosine-weighted directions (``samples²``) from ``points²`` midpoint-rule points per facet, area
+    weighted. ``sc`` is a float64 CPU scene. Returns two float64 tensors ``[len(idx)]``.
+    """
+    from .formfactors import _bilinear
     from .raycast import RayCaster
 
     n = int(samples)
@@ -221,15 +239,22 @@ def back_coverage(
     lx, ly, lz = (local[None, :, c, None] for c in range(3))
     dirs = lx * t1[:, None] + ly * t2[:, None] + lz * normals[:, None]  # [k, D, 3]
     q = (torch.arange(points, dtype=torch.float64) + 0.5) / points
-    pts, jac = _bilinear(sc.corners[idx], q.repeat_interleave(points), q.repeat(points))  # [k, P, 3]
-    o = pts[:, :, None, :].expand(-1, -1, dirs.shape[1], -1)
-    d = dirs[:, None, :, :].expand(-1, pts.shape[1], -1, -1)
-    hit = torch.from_numpy(RayCaster(sc).first_hit(o.reshape(-1, 3).numpy(), d.reshape(-1, 3).numpy()))
-    hit = hit.reshape(d.shape[:-1])
-    back = (hit >= 0) & ((d * sc.normals[hit.clamp_min(0)]).sum(-1) > 0)
-    w = jac / jac.sum(1, keepdim=True)
-    b[idx] = (back.to(torch.float64).mean(-1) * w).sum(1)
-    return b
+    caster = RayCaster(sc)
+    escape = torch.empty(idx.numel(), dtype=torch.float64)
+    back = torch.empty(idx.numel(), dtype=torch.float64)
+    per = max(1, (1 << 20) // (points * points * dirs.shape[1]))  # about a million rays at a time
+    for s in range(0, idx.numel(), per):
+        sl = slice(s, s + per)
+        pts, jac = _bilinear(sc.corners[idx[sl]], q.repeat_interleave(points), q.repeat(points))  # [k, P, 3]
+        o = pts[:, :, None, :].expand(-1, -1, dirs.shape[1], -1)
+        d = dirs[sl, None, :, :].expand(-1, pts.shape[1], -1, -1)
+        hit = torch.from_numpy(caster.first_hit(o.reshape(-1, 3).numpy(), d.reshape(-1, 3).numpy()))
+        hit = hit.reshape(d.shape[:-1])
+        is_back = (hit >= 0) & ((d * sc.normals[hit.clamp_min(0)]).sum(-1) > 0)
+        w = jac / jac.sum(1, keepdim=True)
+        escape[sl] = ((hit < 0).to(torch.float64).mean(-1) * w).sum(1)
+        back[sl] = (is_back.to(torch.float64).mean(-1) * w).sum(1)
+    return escape, back
 
 
 def uniform(scene: Scene, spd: Tensor) -> Tensor:
