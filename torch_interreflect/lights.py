@@ -132,7 +132,7 @@ def sky(
     spd: Tensor,
     *,
     backfaces: Literal["auto"] | bool = "auto",
-    samples: int = 12,
+    samples: int = 16,
 ) -> Tensor:
     """Direct irradiance from a uniform diffuse sky of radiance ``spd``: ``E0_i = π L (1 − Σ_j F_ij − b_i)``.
 
@@ -147,8 +147,8 @@ def sky(
         spd: Sky radiance, W·sr⁻¹·m⁻²·nm⁻¹, shape ``[..., L]``.
         backfaces: ``"auto"`` estimates ``b_i`` only for facets that have another facet's back in front of
             them; ``True`` for every facet; ``False`` never (``b = 0``).
-        samples: Stratified cosine-weighted directions per axis (``samples²`` per point, 8 × 8 points per
-            facet) for ``b``.
+        samples: Jittered stratified cosine-weighted directions per axis (``samples²`` per point, 8 × 8 points
+            per facet) for the ray-cast parts (``b``, and the open part of facets with occluded pairs).
 
     Shape:
         - output: ``[..., F, L]``
@@ -219,15 +219,19 @@ def back_coverage(
 def _hemisphere_fractions(sc: Scene, idx: Tensor, *, samples: int, points: int) -> tuple[Tensor, Tensor]:
     """Cosine-weighted fractions of the hemispheres of facets ``idx`` that escape the scene / hit a back face.
 
-    Stratified cosine-weighted directions (``samples²``) from ``points²`` midpoint-rule points per facet, area
-    weighted. ``sc`` is a float64 CPU scene. Returns two float64 tensors ``[len(idx)]``.
+    Jittered stratified cosine-weighted directions (``samples²``) from ``points²`` jittered points per facet,
+    area weighted. ``sc`` is a float64 CPU scene. Returns two float64 tensors ``[len(idx)]``.
     """
     from .formfactors import _bilinear
     from .raycast import RayCaster
 
     n = int(samples)
-    g = (torch.arange(n, dtype=torch.float64) + 0.5) / n
-    r1, r2 = g.repeat_interleave(n), g.repeat(n)  # stratified unit square → cosine-weighted hemisphere
+    # jittered stratification of the unit square (fixed seed: reproducible, and unbiased where the midpoint
+    # rule is not for a discontinuous visibility) → cosine-weighted hemisphere
+    gen = torch.Generator().manual_seed(0)
+    cells = torch.arange(n, dtype=torch.float64)
+    r1 = (cells.repeat_interleave(n) + torch.rand(n * n, dtype=torch.float64, generator=gen)) / n
+    r2 = (cells.repeat(n) + torch.rand(n * n, dtype=torch.float64, generator=gen)) / n
     rad, ang = r1.sqrt(), 2 * math.pi * r2
     local = torch.stack([rad * ang.cos(), rad * ang.sin(), (1 - r1).clamp_min(0).sqrt()], dim=-1)  # [D, 3]
     normals = sc.normals[idx]
@@ -239,13 +243,15 @@ def _hemisphere_fractions(sc: Scene, idx: Tensor, *, samples: int, points: int) 
     lx, ly, lz = (local[None, :, c, None] for c in range(3))
     dirs = lx * t1[:, None] + ly * t2[:, None] + lz * normals[:, None]  # [k, D, 3]
     q = (torch.arange(points, dtype=torch.float64) + 0.5) / points
+    qu = q.repeat_interleave(points) + (torch.rand(points * points, dtype=torch.float64, generator=gen) - 0.5) / points
+    qv = q.repeat(points) + (torch.rand(points * points, dtype=torch.float64, generator=gen) - 0.5) / points
     caster = RayCaster(sc)
     escape = torch.empty(idx.numel(), dtype=torch.float64)
     back = torch.empty(idx.numel(), dtype=torch.float64)
     per = max(1, (1 << 20) // (points * points * dirs.shape[1]))  # about a million rays at a time
     for s in range(0, idx.numel(), per):
         sl = slice(s, s + per)
-        pts, jac = _bilinear(sc.corners[idx[sl]], q.repeat_interleave(points), q.repeat(points))  # [k, P, 3]
+        pts, jac = _bilinear(sc.corners[idx[sl]], qu, qv)  # [k, P, 3]
         o = pts[:, :, None, :].expand(-1, -1, dirs.shape[1], -1)
         d = dirs[sl, None, :, :].expand(-1, pts.shape[1], -1, -1)
         hit = torch.from_numpy(caster.first_hit(o.reshape(-1, 3).numpy(), d.reshape(-1, 3).numpy()))
