@@ -159,6 +159,15 @@ def _clip(poly: Tensor, point: Tensor, normal: Tensor, eps: float) -> Tensor:
     return _compact(slots, valid)[0]
 
 
+def _tangent_frame(normals: Tensor) -> tuple[Tensor, Tensor]:
+    """Two unit tangents ``[F, 3]`` completing each unit normal to a right-handed orthonormal frame."""
+    e = torch.eye(3, dtype=normals.dtype, device=normals.device)
+    helper = torch.where(normals[:, :1].abs() < 0.9, e[0], e[1])
+    t1 = torch.linalg.cross(normals, helper, dim=-1)
+    t1 = t1 / t1.norm(dim=-1, keepdim=True)
+    return t1, torch.linalg.cross(normals, t1, dim=-1)
+
+
 def _signed(points: Tensor, origin: Tensor, normal: Tensor) -> Tensor:
     """Signed distances ``[P, K]`` of points ``[P, K, 3]`` to the planes ``(origin [P, 3], normal [P, 3])``."""
     return ((points - origin[:, None, :]) * normal[:, None, :]).sum(-1)
@@ -587,13 +596,7 @@ def _monte_carlo(
     F = sc.num_facets
     normals = sc.normals
     # orthonormal frame per facet
-    helper = torch.where(
-        normals[:, :1].abs() < 0.9, torch.tensor([1.0, 0, 0], dtype=torch.float64),
-        torch.tensor([0.0, 1, 0], dtype=torch.float64)
-    )
-    t1 = torch.linalg.cross(normals, helper, dim=-1)
-    t1 = t1 / t1.norm(dim=-1, keepdim=True)
-    t2 = torch.linalg.cross(normals, t1, dim=-1)
+    t1, t2 = _tangent_frame(normals)
     rows, cols, vals = [], [], []
     per = max(1, (1 << 21) // samples)
     for s in range(0, F, per):

@@ -222,7 +222,7 @@ def _hemisphere_fractions(sc: Scene, idx: Tensor, *, samples: int, points: int) 
     Jittered stratified cosine-weighted directions (``samples²``) from ``points²`` jittered points per facet,
     area weighted. ``sc`` is a float64 CPU scene. Returns two float64 tensors ``[len(idx)]``.
     """
-    from .formfactors import _bilinear
+    from .formfactors import _bilinear, _tangent_frame
     from .raycast import RayCaster
 
     n = int(samples)
@@ -235,11 +235,7 @@ def _hemisphere_fractions(sc: Scene, idx: Tensor, *, samples: int, points: int) 
     rad, ang = r1.sqrt(), 2 * math.pi * r2
     local = torch.stack([rad * ang.cos(), rad * ang.sin(), (1 - r1).clamp_min(0).sqrt()], dim=-1)  # [D, 3]
     normals = sc.normals[idx]
-    helper = torch.where(normals[:, :1].abs() < 0.9, torch.tensor([1.0, 0, 0], dtype=torch.float64),
-                         torch.tensor([0.0, 1, 0], dtype=torch.float64))
-    t1 = torch.linalg.cross(normals, helper, dim=-1)
-    t1 = t1 / t1.norm(dim=-1, keepdim=True)
-    t2 = torch.linalg.cross(normals, t1, dim=-1)
+    t1, t2 = _tangent_frame(normals)
     lx, ly, lz = (local[None, :, c, None] for c in range(3))
     dirs = lx * t1[:, None] + ly * t2[:, None] + lz * normals[:, None]  # [k, D, 3]
     q = (torch.arange(points, dtype=torch.float64) + 0.5) / points
