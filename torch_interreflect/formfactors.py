@@ -254,8 +254,8 @@ def form_factors(
         tol: Target relative accuracy of each entry; sets the quadrature order of every pair.
         adjacent_order: Gauss order (per direction) for pairs that share an edge or a vertex (default from
             ``tol``; these use rules graded toward the shared edge).
-        visibility_samples: Points per direction on each facet for visibility rays: a partly blocked pair
-            casts ``visibility_samples⁴`` kernel-weighted rays.
+        visibility_samples: Points per direction on the target facet for visibility rays: every quadrature
+            point of a pair that a third facet could block casts ``visibility_samples²`` kernel-weighted rays.
         samples: Rays per facet for ``method="monte_carlo"``.
         layout: Storage of the matrix: dense, sparse CSR, or chosen by size and density.
         generator: Random generator for ``method="monte_carlo"``.
@@ -393,6 +393,25 @@ def _quadrature(
         groups.append(("plain", sel, int(n)))
     clipped = torch.nonzero(special).reshape(-1)
 
+    # occlusion: pairs that a third facet could block get a visible fraction at every quadrature point
+    t_vis = time.perf_counter()
+    if occlusion is False:
+        need = torch.zeros(dom.numel(), dtype=torch.bool)
+    elif occlusion is True:
+        need = torch.ones(dom.numel(), dtype=torch.bool)
+    else:
+        need = _blocker_candidates(sc, dom, tgt, eps)
+    vis = _PointVisibility(sc, visibility_samples) if bool(need.any()) else None
+    seconds_vis = time.perf_counter() - t_vis
+
+    def visible(p: Tensor, x: Tensor) -> Tensor:
+        """Per-point visible fractions ``[p, Q]`` (1 where no ray is needed)."""
+        out = torch.ones(x.shape[:2], dtype=torch.float64)
+        rows = torch.nonzero(need[p]).reshape(-1)
+        if vis is not None and rows.numel():
+            out[rows] = vis(x[rows], dom[p[rows]], tgt[p[rows]])
+        return out
+
     bar = tqdm(total=int(dom.numel()), desc="form factors", unit="pair", leave=False,
                disable=None if progress else True, mininterval=1.0)
     for kind, sel, n in groups:
@@ -407,7 +426,7 @@ def _quadrature(
             idx = (torch.arange(4)[None, :] + shift[p, None]) % 4
             domain = torch.gather(corners[dom[p]], 1, idx[..., None].expand(-1, -1, 3))
             x, jac = _bilinear(domain, u, v)
-            f = point_polygon_factor(x, normals[dom[p]], target)
+            f = point_polygon_factor(x, normals[dom[p]], target) * visible(p, x)
             value[p] = (f * jac * w).sum(1)
             points += p.numel() * Q
             bar.update(p.numel())
@@ -432,7 +451,7 @@ def _quadrature(
                     u, v, w = rules[0] if k == 1 else rules[1]
                     tri = torch.stack([poly[:, 0], poly[:, k], poly[:, k + 1], poly[:, k + 1]], dim=1)
                     x, jac = _bilinear(tri, u, v)
-                    f = point_polygon_factor(x, normals[dom[p]], target)
+                    f = point_polygon_factor(x, normals[dom[p]], target) * visible(p, x)
                     total += (f * jac * w).sum(1)
                     points += p.numel() * u.numel()
                 value[p] = total
@@ -444,16 +463,13 @@ def _quadrature(
     info["pairs_adjacent"] = int((has_edge | has_vertex).sum())
     info["pairs_clipped"] = int((clip_t | clip_d).sum())
 
-    # occlusion
-    t = time.perf_counter()
-    vis, occluded, n_rays = _visibility(sc, dom, tgt, occlusion, visibility_samples, eps)
-    value = value * vis
     # facets with a pair whose visibility was estimated by rays: their row sums are estimates, not exact
     approx = torch.zeros(F, dtype=torch.bool)
-    approx[dom[occluded]] = True
-    approx[tgt[occluded]] = True
-    info.update(occluded_pairs=int(occluded.numel()), rays=n_rays, seconds_visibility=time.perf_counter() - t,
-                occluded_facets=approx)
+    approx[dom[need]] = True
+    approx[tgt[need]] = True
+    info.update(occluded_pairs=int(need.sum()), rays=vis.rays if vis else 0, occluded_facets=approx,
+                seconds_visibility=seconds_vis + (vis.seconds if vis else 0.0))
+    info["seconds_quadrature"] -= vis.seconds if vis else 0.0
 
     rows = torch.cat([dom, tgt])
     cols = torch.cat([tgt, dom])
@@ -536,50 +552,54 @@ def _facet_samples(corners: Tensor, n: int) -> tuple[Tensor, Tensor]:
     return x, jac / (n * n)
 
 
-def _visibility(
-    sc: Scene, dom: Tensor, tgt: Tensor, occlusion: Literal["auto"] | bool, n: int, eps: float
-) -> tuple[Tensor, Tensor, int]:
-    """Kernel-weighted visible fraction per pair, the indices of the pairs that cast rays, and the ray count."""
-    vis = torch.ones(dom.numel(), dtype=torch.float64)
-    none = torch.zeros(0, dtype=torch.int64)
-    if occlusion is False or dom.numel() == 0:
-        return vis, none, 0
-    need = torch.ones_like(vis, dtype=torch.bool) if occlusion is True else _blocker_candidates(sc, dom, tgt, eps)
-    sel = torch.nonzero(need).reshape(-1)
-    if sel.numel() == 0:
-        return vis, none, 0
-    from .raycast import RayCaster
+class _PointVisibility:
+    """Kernel-weighted visible fraction of a target facet from quadrature points, by Embree rays.
 
-    caster = RayCaster(sc)
-    pts, wts = _facet_samples(sc.corners, n)  # [F, S, 3], [F, S]
-    # float32 relative to the caster's origin: what Embree takes, and half the memory traffic
-    pts = (pts - torch.as_tensor(caster.origin)).float()
-    wts = wts.float()
-    normals = sc.normals.float()
-    S = pts.shape[1]
-    rays = 0
-    per = max(1, (1 << 19) // (S * S))
-    for s in range(0, sel.numel(), per):
-        p = sel[s : s + per]
-        a, b = dom[p], tgt[p]
-        xa = pts[a][:, :, None, :]  # [c, S, 1, 3]
-        r = pts[b][:, None, :, :] - xa  # [c, S, S, 3]
-        d2 = (r * r).sum(-1).clamp_min(1e-30)
-        length = d2.sqrt()
-        cos_a = (r * normals[a][:, None, None, :]).sum(-1).clamp_min(0)
-        cos_b = (-(r * normals[b][:, None, None, :]).sum(-1)).clamp_min(0)
-        k = cos_a * cos_b / (d2 * d2) * wts[a][:, :, None] * wts[b][:, None, :]
-        direction = r / length[..., None]
-        origin = xa + caster.eps * direction
-        blocked = torch.from_numpy(
-            caster.occluded(origin.reshape(-1, 3).numpy(), direction.reshape(-1, 3).numpy(),
-                            (length - 2 * caster.eps).reshape(-1).numpy())
-        ).reshape(k.shape)
-        num = (k * (~blocked)).sum((1, 2))
-        den = k.sum((1, 2))
-        vis[p] = torch.where(den > 0, num / den.clamp_min(1e-30), torch.ones_like(den)).double()
-        rays += int(blocked.numel())
-    return vis, sel, rays
+    From each point ``x`` rays go to ``n × n`` midpoint-rule points ``y`` of the target; each is weighted by
+    ``cos θ_x cos θ_y / |x − y|²`` times ``y``'s area, so the fraction converges to the visibility-weighted
+    point-to-polygon factor over the plain one as ``n`` grows.
+    """
+
+    def __init__(self, sc: Scene, n: int) -> None:
+        from .raycast import RayCaster
+
+        self.caster = RayCaster(sc)
+        pts, wts = _facet_samples(sc.corners, n)  # [F, S, 3], [F, S]
+        self.origin = torch.as_tensor(self.caster.origin)
+        self.pts = (pts - self.origin).float()
+        self.wts = wts.float()
+        self.normals = sc.normals.float()
+        self.rays = 0
+        self.seconds = 0.0
+
+    def __call__(self, x: Tensor, dom: Tensor, tgt: Tensor) -> Tensor:
+        t0 = time.perf_counter()
+        P, Q, _ = x.shape
+        S = self.pts.shape[1]
+        out = torch.empty(P, Q, dtype=torch.float64)
+        xs = (x - self.origin).float()
+        per = max(1, (1 << 19) // (Q * S))
+        for s in range(0, P, per):
+            a, b = dom[s : s + per], tgt[s : s + per]
+            xa = xs[s : s + per][:, :, None, :]  # [c, Q, 1, 3]
+            r = self.pts[b][:, None, :, :] - xa  # [c, Q, S, 3]
+            d2 = (r * r).sum(-1).clamp_min(1e-30)
+            length = d2.sqrt()
+            cos_a = (r * self.normals[a][:, None, None, :]).sum(-1).clamp_min(0)
+            cos_b = (-(r * self.normals[b][:, None, None, :]).sum(-1)).clamp_min(0)
+            k = cos_a * cos_b / (d2 * d2) * self.wts[b][:, None, :]
+            direction = r / length[..., None]
+            origin = xa + self.caster.eps * direction
+            blocked = torch.from_numpy(
+                self.caster.occluded(origin.reshape(-1, 3).numpy(), direction.reshape(-1, 3).numpy(),
+                                     (length - 2 * self.caster.eps).reshape(-1).numpy())
+            ).reshape(k.shape)
+            num = (k * (~blocked)).sum(-1)
+            den = k.sum(-1)
+            out[s : s + per] = torch.where(den > 0, num / den.clamp_min(1e-30), torch.ones_like(den)).double()
+            self.rays += int(blocked.numel())
+        self.seconds += time.perf_counter() - t0
+        return out
 
 
 # ------------------------------------------------------------------------------------ Monte Carlo
