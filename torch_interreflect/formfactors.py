@@ -469,7 +469,7 @@ def _quadrature(
     approx[tgt[need]] = True
     info.update(occluded_pairs=int(need.sum()), rays=vis.rays if vis else 0, occluded_facets=approx,
                 seconds_visibility=seconds_vis + (vis.seconds if vis else 0.0))
-    info["seconds_quadrature"] -= vis.seconds if vis else 0.0
+    info["seconds_quadrature"] -= seconds_vis + (vis.seconds if vis else 0.0)
 
     rows = torch.cat([dom, tgt])
     cols = torch.cat([tgt, dom])
