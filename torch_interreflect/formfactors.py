@@ -201,9 +201,10 @@ def _rotate_to_plane_edge(poly: Tensor, point: Tensor, normal: Tensor, eps: floa
 
 
 # ------------------------------------------------------------------------------- pair selection
-def _facing(corners: Tensor, normals: Tensor, cent: Tensor, eps: float, chunk: int) -> Tensor:
+def _facing(corners: Tensor, normals: Tensor, cent: Tensor, eps: float, chunk: int | None = None) -> Tensor:
     """``front[i, j]``: some corner of j lies strictly in front of i's plane. Boolean ``[F, F]``."""
     F = corners.shape[0]
+    chunk = chunk or max(1, (1 << 22) // (4 * F))
     front = torch.empty(F, F, dtype=torch.bool, device=corners.device)
     pts = corners  # [F, 4, 3]
     for s in range(0, F, chunk):
@@ -332,7 +333,7 @@ def _quadrature(
     info: dict = {}
 
     t = time.perf_counter()
-    front = _facing(corners, normals, cent, eps, chunk=max(1, (1 << 22) // (4 * F)))
+    front = _facing(corners, normals, cent, eps)
     mutual = front & front.T
     iu, ju = torch.nonzero(torch.triu(mutual, diagonal=1), as_tuple=True)
     info["pairs"] = int(iu.numel())
@@ -476,6 +477,13 @@ def _quadrature(
     vals = torch.cat([value / areas[dom], value / areas[tgt]])
     keep = vals > 0
     return rows[keep], cols[keep], vals[keep], info
+
+
+def _facing_others(scene: Scene) -> Tensor:
+    """``_facing`` of a scene (float64, CPU) with the diagonal cleared: ``[i, j]`` for facets j ≠ i only."""
+    sc = scene.to(torch.float64).to("cpu")
+    front = _facing(sc.corners, sc.normals, sc.centroids, _plane_eps(scene))
+    return front.fill_diagonal_(False)
 
 
 def _plane_eps(scene: Scene) -> float:

@@ -60,14 +60,11 @@ def lit_fraction(
     frac = (cos > 0).to(torch.float64)
     if shadows is False:
         return frac.to(scene.dtype).to(scene.device)
-    from .formfactors import _bilinear, _facing, _plane_eps
+    from .formfactors import _bilinear, _facing_others
 
     lit = cos > 0
     if shadows == "auto":
-        F = sc.num_facets
-        front = _facing(sc.corners, sc.normals, sc.centroids, _plane_eps(scene), chunk=max(1, (1 << 22) // (4 * F)))
-        front.fill_diagonal_(False)
-        lit = lit & front.any(1)
+        lit = lit & _facing_others(scene).any(1)
     idx = torch.nonzero(lit).reshape(-1)
     if idx.numel():
         from .raycast import RayCaster
@@ -199,14 +196,13 @@ def back_coverage(
     Returns:
         ``b [F]`` in [0, 1], float64 on the CPU.
     """
-    from .formfactors import _facing, _plane_eps
+    from .formfactors import _facing_others
 
     sc = scene.to(torch.float64).to("cpu")
     F = sc.num_facets
     b = torch.zeros(F, dtype=torch.float64)
     if only_where_possible:
-        front = _facing(sc.corners, sc.normals, sc.centroids, _plane_eps(scene), chunk=max(1, (1 << 22) // (4 * F)))
-        front.fill_diagonal_(False)
+        front = _facing_others(scene)
         idx = torch.nonzero((front & ~front.T).any(1)).reshape(-1)
     else:
         idx = torch.arange(F)
