@@ -10,8 +10,9 @@ Example:
     32
 """
 
-from . import camera, errors, imaging, inverse, layers, lights, raycast, scenes, spectral, training
+from . import accuracy, camera, errors, imaging, inverse, layers, lights, raycast, scenes, spectral, training
 from ._version import __version__
+from .accuracy import AccuracyReport, RenderResult, render
 from .camera import Camera, spectral_to_rgb
 from .formfactors import form_factors
 from .kernel import FormFactors
@@ -19,10 +20,13 @@ from .scene import Scene
 from .solve import radiance, solve
 
 __all__ = [
+    "AccuracyReport",
     "Camera",
     "FormFactors",
+    "RenderResult",
     "Scene",
     "__version__",
+    "accuracy",
     "camera",
     "errors",
     "form_factors",
@@ -32,6 +36,7 @@ __all__ = [
     "lights",
     "radiance",
     "raycast",
+    "render",
     "scenes",
     "solve",
     "spectral",

@@ -1,0 +1,191 @@
+"""ti.render(accuracy=...): error estimate against finer solutions, layout and power, sparsification, bounces,
+wavelength reduction, gradients and the errors/warnings for unreachable targets."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import warnings
+
+import pytest
+import torch
+
+import torch_interreflect as ti
+from torch_interreflect.accuracy import AccuracyWarning, plan
+from torch_interreflect.errors import ShapeError, ValueRangeError
+
+D = torch.float64
+ONE = torch.ones(1, dtype=D)
+WL = torch.tensor([550.0], dtype=D)
+
+
+def _grey(scene: ti.Scene, r: float, dtype: torch.dtype = D) -> torch.Tensor:
+    return torch.full((scene.num_facets,), r, dtype=dtype)
+
+
+@pytest.fixture(scope="module")
+def groove() -> ti.Scene:
+    return ti.scenes.v_groove(45.0, size=(1.0, 1.0), divisions=2, dtype=D)
+
+
+@pytest.fixture(scope="module")
+def groove_reference(groove: ti.Scene) -> torch.Tensor:
+    """Uniform refinement k = 6 and 12, extrapolated (first order): E ≈ 2 E_12 − E_6 under uniform light."""
+    out = []
+    for k in (6, 12):
+        fine, parent = groove.subdivide(k)
+        E = ti.solve(ti.form_factors(fine), _grey(fine, 0.8), torch.ones(fine.num_facets, 1, dtype=D))
+        out.append(groove.average_to_parent(E, parent, fine)[:, 0])
+    return 2 * out[1] - out[0]
+
+
+def _rel_rms(x: torch.Tensor, ref: torch.Tensor) -> float:
+    return float(((x - ref) / ref).square().mean().sqrt())
+
+
+@pytest.mark.parametrize("accuracy", [3e-2, 1e-2])
+def test_error_stays_below_the_request_and_the_estimate_is_honest(groove, groove_reference, accuracy):
+    out = ti.render(groove, _grey(groove, 0.8), "uniform", ONE, wavelengths=WL, accuracy=accuracy)
+    actual = _rel_rms(out.irradiance[:, 0], groove_reference)
+    rep = out.report
+    assert rep.reached and rep.estimated <= accuracy
+    assert actual <= accuracy
+    # the estimate is of the right size: not below half the actual error, not 20x above it
+    assert rep.estimated >= 0.5 * actual
+    assert rep.estimated <= 20 * actual + 1e-4
+    # it refined, and refined the facets at the hinge (indices of the hinge row) at least as much as the rest
+    assert rep.leaves > groove.num_facets
+    hinge = (groove.centroids[:, 0].abs() < 0.3) & (groove.centroids[:, 2].abs() < 0.3)
+    assert int(rep.leaves_per_facet[hinge].min()) >= int(rep.leaves_per_facet[~hinge].max())
+
+
+def test_tighter_accuracy_does_more_work_and_gets_closer(groove, groove_reference):
+    a = ti.render(groove, _grey(groove, 0.8), "uniform", ONE, wavelengths=WL, accuracy=3e-2)
+    b = ti.render(groove, _grey(groove, 0.8), "uniform", ONE, wavelengths=WL, accuracy=5e-3)
+    assert b.report.leaves > a.report.leaves
+    assert _rel_rms(b.irradiance[:, 0], groove_reference) < _rel_rms(a.irradiance[:, 0], groove_reference)
+
+
+def test_closed_box_is_exact_at_any_refinement():
+    # uniform E0 and reflectance in a closed box: E = E0 / (1 - r) exactly, whatever the discretisation
+    box = ti.scenes.closed_box(divisions=2, dtype=D)
+    out = ti.render(box, _grey(box, 0.7), "uniform", ONE, wavelengths=WL, accuracy=1e-3)
+    torch.testing.assert_close(out.irradiance, torch.full_like(out.irradiance, 1 / 0.3), rtol=1e-6, atol=0)
+    assert out.report.parts["discretisation"] < 1e-6
+    assert out.report.iterations == 1  # one refinement to measure the error, none after
+
+
+def test_refinement_keeps_the_layout_and_the_total_power(groove):
+    r = torch.linspace(0.3, 0.9, groove.num_facets, dtype=D)
+    p = plan(groove, r, [-0.9, 0.1, -0.3], ONE, wavelengths=WL, accuracy=1e-2)  # lights both plates
+    p = dataclasses.replace(p, method="dense", bounces=None)
+    out = p.apply(r, ONE)
+    assert out.irradiance.shape == (groove.num_facets, 1)
+    # leaves tile the user's facets: areas add up per facet
+    leaf_area = torch.zeros(groove.num_facets, dtype=D).index_add(0, p.leaf_user, p.leaves.areas)
+    torch.testing.assert_close(leaf_area, groove.areas, rtol=1e-12, atol=0)
+    # the power the user facets receive is the power the leaves receive
+    E_leaf = ti.solve(p.form_factors, r[p.leaf_user], p.light_factor[:, None], method="dense")
+    torch.testing.assert_close(
+        (groove.areas * out.irradiance[:, 0]).sum(), (p.leaves.areas * E_leaf[:, 0]).sum(), rtol=1e-9, atol=0
+    )
+
+
+def test_sparsified_kernel_stays_within_its_bound():
+    scene = ti.scenes.closed_box(divisions=4, dtype=D)
+    K = ti.form_factors(scene)
+    r = torch.full((scene.num_facets,), 0.8, dtype=D)
+    e0 = torch.rand(scene.num_facets, 2, dtype=D, generator=torch.Generator().manual_seed(0))
+    E = ti.solve(K, r, e0, method="dense")
+    for mass in (1e-3, 1e-2):
+        Ks = K.sparsify(mass)
+        assert Ks.nnz < K.nnz and Ks.info["dropped_row_mass"] <= mass
+        AF = scene.areas[:, None] * Ks.to_dense()
+        torch.testing.assert_close(AF, AF.T, rtol=1e-12, atol=1e-15)  # reciprocity kept: cg still applies
+        Es = ti.solve(Ks, r, e0, method="cg", tol=1e-12)
+        rho = 0.8 * float(K.row_sums().max())
+        bound = mass * 0.8 * E.abs().max() / (1 - rho)
+        err = (Es - E).abs().max()
+        assert err <= bound
+        assert err > 0  # something was dropped and it shows
+
+
+def test_dark_scene_uses_the_bounce_series_within_its_bound(groove):
+    out = ti.render(groove, _grey(groove, 0.2), "uniform", ONE, wavelengths=WL, accuracy=1e-2)
+    rep = out.report
+    assert rep.method == "series" and rep.bounces is not None and rep.bounces >= 2
+    # the series on the same leaves against the exact solve of the same leaves
+    p = plan(groove, _grey(groove, 0.2), "uniform", ONE, wavelengths=WL, accuracy=1e-2)
+    exact = ti.solve(p.form_factors, _grey(p.leaves, 0.2), p.light_factor[:, None], method="dense")
+    series = ti.solve(p.form_factors, _grey(p.leaves, 0.2), p.light_factor[:, None], bounces=rep.bounces)
+    rel = ((series - exact) / exact).abs().max()
+    assert rel <= rep.parts["solver"]
+    assert rep.parts["solver"] <= 0.05 * 1e-2 + 1e-15
+
+
+def test_bright_scene_uses_conjugate_gradients(groove):
+    rep = ti.render(groove, _grey(groove, 0.95), "uniform", ONE, wavelengths=WL, accuracy=1e-2).report
+    assert rep.method == "cg" and rep.bounces is None
+
+
+def test_camera_rgb_on_fewer_wavelengths():
+    scene = ti.scenes.v_groove(60.0, size=(1.0, 1.0), divisions=2, dtype=D)
+    wl = ti.spectral.wavelengths(dtype=D)
+    cam = ti.Camera.from_colour("Nikon 5100 (NPL)", wl)
+    patches = ti.spectral.colorchecker(wl)[0][[0, 6, 12, 18]].to(D)  # 4 spectra, one per pair of facets
+    r = patches.repeat_interleave(2, 0)
+    p = plan(scene, r, "uniform", "D65", cam, accuracy=2e-2)
+    rep = p.report
+    assert rep.wavelengths.numel() < 31
+    got = p.apply(r, "D65", cam).rgb
+    full = dataclasses.replace(p, nodes=torch.arange(31)).apply(r, "D65", cam).rgb
+    err = float(((got - full) / full).square().mean().sqrt())
+    assert err <= 0.2 * 2e-2 + rep.parts["solver"]
+    assert err <= 2 * rep.wavelength_error + 1e-3
+
+
+def test_gradients_reach_reflectance_and_illuminant(groove):
+    r = torch.full((groove.num_facets,), 0.6, dtype=D)
+    p = plan(groove, r, "uniform", ONE, wavelengths=WL, accuracy=5e-2)
+    p = dataclasses.replace(p, method="dense", bounces=None)  # exact solve: checks the gather / average plumbing
+    s = torch.full((1,), 2.0, dtype=D, requires_grad=True)
+    rr = r.clone().requires_grad_(True)
+    torch.autograd.gradcheck(lambda a, b: p.apply(a, b).irradiance, (rr, s))
+
+
+def test_float32_matches_float64(groove):
+    a = ti.render(groove, _grey(groove, 0.8), "uniform", ONE, wavelengths=WL, accuracy=2e-2).irradiance
+    g32 = groove.to(torch.float32)
+    b = ti.render(g32, _grey(g32, 0.8, torch.float32), "uniform", ONE.float(), wavelengths=WL.float(), accuracy=2e-2)
+    assert b.irradiance.dtype == torch.float32 and b.report.reached
+    # both are within 2e-2 of the truth, so within 4e-2 of each other (refinement choices may differ)
+    assert _rel_rms(b.irradiance.double()[:, 0], a[:, 0]) <= 4e-2
+
+
+def test_accuracy_below_what_the_dtype_resolves_is_an_error(groove):
+    g32 = groove.to(torch.float32)
+    with pytest.raises(ValueRangeError, match="float32"):
+        ti.render(g32, _grey(g32, 0.5, torch.float32), accuracy=1e-6)
+    for bad in (0.0, -1e-2, 0.7, math.nan, True):
+        with pytest.raises(ValueRangeError):
+            ti.render(groove, _grey(groove, 0.5), accuracy=bad)
+
+
+def test_unreachable_accuracy_warns_and_says_so(groove):
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        out = ti.render(groove, _grey(groove, 0.9), "uniform", ONE, wavelengths=WL, accuracy=1e-4, max_facets=200)
+    assert any(issubclass(w.category, AccuracyWarning) and "max_facets=200" in str(w.message) for w in caught)
+    assert not out.report.reached and out.report.estimated > 1e-4
+    assert out.report.leaves <= 200
+
+
+def test_bad_shapes(groove):
+    with pytest.raises(ShapeError, match="reflectance"):
+        ti.render(groove, torch.full((5,), 0.5, dtype=D), accuracy=1e-2)
+    with pytest.raises(ShapeError, match="illuminant"):
+        ti.render(groove, _grey(groove, 0.5), "uniform", torch.ones(3, dtype=D), wavelengths=WL, accuracy=1e-2)
+    with pytest.raises(ValueRangeError, match=r"\[0, 1\]"):
+        ti.render(groove, _grey(groove, 1.5), accuracy=1e-2)
+    with pytest.raises(TypeError):
+        ti.render("groove", _grey(groove, 0.5))  # type: ignore[arg-type]
