@@ -189,3 +189,20 @@ def test_bad_shapes(groove):
         ti.render(groove, _grey(groove, 1.5), accuracy=1e-2)
     with pytest.raises(TypeError):
         ti.render("groove", _grey(groove, 0.5))  # type: ignore[arg-type]
+
+
+def test_layer_with_accuracy_keeps_the_scene_facets_and_meets_the_target():
+    scene = ti.scenes.v_groove(45.0, size=(1.0, 1.0), divisions=2, dtype=D)
+    wl = ti.spectral.wavelengths(dtype=D)
+    layer = ti.layers.Interreflection(scene, wl, accuracy=2e-2).to(D)
+    assert layer.accuracy_report.reached and layer.matrix.shape[0] > scene.num_facets
+    r = torch.full((2, 8, 31), 0.8, dtype=D, requires_grad=True)
+    d65 = ti.spectral.illuminant("D65", wl).to(D)
+    rgb = layer(r, d65)
+    assert rgb.shape == (2, 8, 3)
+    cam = ti.Camera.from_colour("Nikon 5100 (NPL)", wl).to(D)
+    ref = ti.render(scene, r[0].detach(), "uniform", d65, cam, accuracy=3e-3).rgb
+    assert _rel_rms(rgb[0].detach(), ref) <= 2e-2 + 3e-3
+    rgb.sum().backward()
+    assert r.grad is not None and bool(torch.isfinite(r.grad).all()) and float(r.grad.abs().min()) > 0
+    assert "leaves" in repr(layer)

@@ -174,6 +174,13 @@ class Interreflection(nn.Module):
             scene's material index.
         tol: Solver tolerance. method: Solver method (see :func:`~torch_interreflect.solve.solve`).
         shadows: Shadows of a directional light.
+        accuracy: Target relative RMS error of the camera RGB per facet (see :func:`torch_interreflect.render`).
+            The scene is then refined once, at construction, by :func:`torch_interreflect.accuracy.plan` for
+            ``plan_reflectance`` and a D65 illuminant; the layer solves on the refined facets (leaves) and
+            area-averages back, so inputs and outputs keep the scene's facets. The plan's report is
+            ``accuracy_report``. Needs a Scene; ``bounces``, ``tol`` and ``method`` then come from the plan.
+        plan_reflectance: Reflectance the refinement is planned for, ``[F, L]`` or ``[F]`` (default 0.9 grey: a
+            bright case, so darker reflectances are at least as accurate).
 
     Shape:
         - reflectance: ``[B, F, L]`` (or ``[F, L]``; ``[B, M, ·]`` with ``per_material``; the model's input shape
@@ -213,10 +220,14 @@ class Interreflection(nn.Module):
         tol: float = 1e-6,
         method: str = "auto",
         shadows: str | bool = "auto",
+        accuracy: float | None = None,
+        plan_reflectance: Tensor | None = None,
     ) -> None:
         super().__init__()
         scene: Scene | None
-        if isinstance(scene_or_form_factors, Scene):
+        if isinstance(scene_or_form_factors, Scene) and accuracy is not None:
+            scene, ff = scene_or_form_factors, None
+        elif isinstance(scene_or_form_factors, Scene):
             scene, ff = scene_or_form_factors, _compute_form_factors(scene_or_form_factors)
         elif isinstance(scene_or_form_factors, FormFactors):
             scene, ff = None, scene_or_form_factors
@@ -232,21 +243,42 @@ class Interreflection(nn.Module):
                 "scene_or_form_factors must be a Scene, a FormFactors or a (Scene, FormFactors) pair; got "
                 f"{type(scene_or_form_factors).__name__}"
             )
-        if scene is not None and scene.num_facets != ff.num_facets:
-            raise ShapeError(f"the scene has {scene.num_facets} facets but the form factors {ff.num_facets}")
-        if bounces is not None and (isinstance(bounces, bool) or not isinstance(bounces, int) or bounces < 1):
-            raise ValueError(f"bounces must be None (infinite) or an integer >= 1; got {bounces!r}")
         wl = spectral.check_wavelengths(wavelengths, min_samples=2)
         if isinstance(camera, str):
             camera = Camera.from_colour(camera, wl)
         if not isinstance(camera, Camera):
             raise TypeError(f"camera must be a Camera or a sensitivity name; got {type(camera).__name__}")
+        self.accuracy_report = None
+        leaf_user = None
+        if accuracy is not None:
+            if scene is None or ff is not None:
+                raise ValueError("accuracy= needs the layer to be built from a Scene (it refines the scene itself)")
+            from ..accuracy import plan as _plan
+
+            n_user = scene.num_facets
+            pr = plan_reflectance if plan_reflectance is not None else torch.full((n_user,), 0.9, dtype=scene.dtype)
+            cam_plan = Camera(camera.sensitivities.to(scene.dtype), camera.wavelengths.to(scene.dtype))
+            p = _plan(scene, pr, light, "D65", cam_plan, accuracy=accuracy)
+            p_full = p.form_factors
+            ff = FormFactors(p_full.matrix, p_full.areas, dict(p_full.info))
+            leaf_user, leaf_light = p.leaves, p.light_factor
+            bounces = p.bounces
+            tol = p.solver_tol if p.method != "series" else tol
+            method = p.method if p.method != "series" else method
+            self.accuracy_report = p.report
+        if ff is None:  # pragma: no cover - every branch above sets it
+            raise RuntimeError("no form factors")
+        if scene is not None and scene.num_facets != ff.num_facets and leaf_user is None:
+            raise ShapeError(f"the scene has {scene.num_facets} facets but the form factors {ff.num_facets}")
+        if bounces is not None and (isinstance(bounces, bool) or not isinstance(bounces, int) or bounces < 1):
+            raise ValueError(f"bounces must be None (infinite) or an integer >= 1; got {bounces!r}")
         if camera.num_wavelengths != wl.shape[0]:
             raise ShapeError(
                 f"the camera has {camera.num_wavelengths} wavelengths but the grid has {wl.shape[0]}"
             )
-        if projection is not None and getattr(projection, "num_facets", ff.num_facets) != ff.num_facets:
-            raise ShapeError(f"the projection has {projection.num_facets} facets but the scene {ff.num_facets}")
+        n_facets = scene.num_facets if leaf_user is not None and scene is not None else ff.num_facets
+        if projection is not None and getattr(projection, "num_facets", n_facets) != n_facets:
+            raise ShapeError(f"the projection has {projection.num_facets} facets but the scene {n_facets}")
         if per_material and (scene is None or scene.material is None):
             raise ValueError("per_material=True needs a scene with a material index")
 
@@ -263,14 +295,21 @@ class Interreflection(nn.Module):
             warnings.simplefilter("ignore", UserWarning)  # sparse CSR beta warning
             self.register_buffer("matrix", ff.matrix.detach())
         self.register_buffer("areas", ff.areas.detach())
-        self.register_buffer("light_factor", light_geometry(light, ff, scene, shadows=shadows))
-        mat = scene.material if scene is not None and scene.material is not None else torch.zeros(ff.num_facets)
+        if leaf_user is not None:
+            self.register_buffer("light_factor", leaf_light.detach())
+            self.register_buffer("leaf_user", p.leaf_user.detach().to(ff.device))
+        else:
+            self.register_buffer("light_factor", light_geometry(light, ff, scene, shadows=shadows))
+            self.leaf_user = None
+        self._num_user = n_facets
+        mat = scene.material if scene is not None and scene.material is not None else torch.zeros(n_facets)
         self.register_buffer("material", mat.detach().long().to(ff.device))
 
     # ------------------------------------------------------------------ properties
     @property
     def num_facets(self) -> int:
-        return int(self.matrix.shape[0])
+        """Facets of the scene (inputs and outputs); with ``accuracy`` the solve runs on more (the leaves)."""
+        return int(self._num_user)
 
     @property
     def wavelengths(self) -> Tensor:
@@ -337,7 +376,14 @@ class Interreflection(nn.Module):
             got = list(illuminant.shape) if isinstance(illuminant, Tensor) else type(illuminant).__name__
             raise ShapeError(f"illuminant must be a spectrum [..., L] with L = {self.num_wavelengths}; got {got}")
         g = self.light_factor.to(device=illuminant.device)
-        return g[:, None] * illuminant[..., None, :]
+        return g[:, None] * illuminant[..., None, :]  # on the leaves when refined
+
+    def _to_user(self, x: Tensor) -> Tensor:
+        """Area-average leaf values ``[..., n, C]`` onto the scene's facets ``[..., F, C]``."""
+        w = self.areas.to(x)
+        num = x.new_zeros(*x.shape[:-2], self.num_facets, x.shape[-1]).index_add(-2, self.leaf_user, x * w[:, None])
+        den = w.new_zeros(self.num_facets).index_add(0, self.leaf_user, w)
+        return num / den[:, None]
 
     def forward(
         self, reflectance: Tensor, illuminant: Tensor | None = None, *, E0: Tensor | None = None
@@ -353,7 +399,13 @@ class Interreflection(nn.Module):
             raise ValueError("give exactly one of illuminant (a spectrum [..., L]) and E0 ([..., F, L])")
         r = self.reflectance(reflectance)
         e0 = self.direct(illuminant) if illuminant is not None else E0
+        if self.leaf_user is not None:  # refined: reflectance (and a given E0) per leaf, RGB averaged back
+            r = r.index_select(-2, self.leaf_user)
+            if illuminant is None:
+                e0 = e0.index_select(-2, self.leaf_user)  # type: ignore[union-attr]
         rgb = render(self.form_factors, r, e0, self.camera, bounces=self.bounces, tol=self.tol, method=self.method)
+        if self.leaf_user is not None:
+            rgb = self._to_user(rgb)
         if self.projection is None:
             return rgb
         flat = rgb.reshape(-1, *rgb.shape[-2:])
@@ -361,8 +413,10 @@ class Interreflection(nn.Module):
 
     def extra_repr(self) -> str:
         layout = "sparse" if self.matrix.layout != torch.strided else "dense"
+        refined = f", solved on {int(self.matrix.shape[0])} leaves" if self.leaf_user is not None else ""
         return (
-            f"facets={self.num_facets} ({layout}), wavelengths={self.num_wavelengths}, bounces={self.bounces}, "
+            f"facets={self.num_facets}{refined} ({layout}), wavelengths={self.num_wavelengths}, "
+            f"bounces={self.bounces}, "
             f"light={self.light!r}, per_material={self.per_material}"
         )
 
