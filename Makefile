@@ -6,7 +6,7 @@ BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed-dev
 OUT    ?= out
 
-.PHONY: install demo train-cc test lint bench bench-install bench-speed bench-solver bench-formfactors clean
+.PHONY: install demo train-cc test lint bench bench-install bench-speed bench-solver bench-formfactors bench-accuracy clean
 
 $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
@@ -34,6 +34,9 @@ bench-formfactors: $(STAMP)
 bench-solver: $(STAMP)
 	$(BIN)/python benchmarks/solver.py
 
+bench-accuracy: $(STAMP)
+	$(BIN)/python benchmarks/accuracy.py --quick
+
 bench-install: $(STAMP)
 	command -v apt-get >/dev/null && (apt-get update -qq && apt-get install -y -qq libllvm19) || true
 	$(BIN)/python -m pip install -q -e '.[dev,bench]'
@@ -41,7 +44,7 @@ bench-install: $(STAMP)
 bench-speed: bench-install
 	$(BIN)/python benchmarks/speed_vs_error.py --quick
 
-bench: bench-formfactors bench-solver bench-speed
+bench: bench-formfactors bench-solver bench-speed bench-accuracy
 
 clean:
 	rm -rf $(OUT) .pytest_cache .ruff_cache

@@ -59,3 +59,22 @@ def test_mitsuba_perpendicular_squares_form_factor() -> None:
     r = mr.MitsubaReference(two, np.array([0.0, 1.0]), mr.Directional((-1.0, 0.0, 0.0), 1.0)).render(1 << 15, seed=2)
     assert r.irradiance[1] == pytest.approx(1.0, abs=1e-12)  # direct only, nothing reflects onto it
     assert abs(r.irradiance[0] - 0.2000438) < 5 * r.stderr[0] + 1e-4
+
+
+def test_accuracy_benchmark_one_tiny_case(tmp_path: Path) -> None:
+    import accuracy as ab
+
+    ref = mr.load_reference("box_corner_sun_r2")
+    p = ab.problem(ref)
+    finer = ab.finer_solution("box_corner_sun_r2", p, max_facets=200, cache=tmp_path)
+    assert finer["levels"] == (1, 2, 3) and (tmp_path / "level_box_corner_sun_r2_k3.npz").exists()
+    assert 0.25 <= finer["order"] <= 4
+    case = ab.run_case(p, 2e-2, max_facets=400)
+    m = ab.measure(case, ref, finer)
+    assert case["irradiance"].shape == (48,) and case["leaves"] >= 48 and case["seconds"] > 0
+    assert m["vs_finer"] <= 2e-2 and m["vs_mitsuba_debiased"] <= 2e-2  # a dark scene: easy
+    curve = ab.uniform_curve("box_corner_sun_r2", p, finer, max_facets=48, cache=tmp_path)
+    assert [c["k"] for c in curve] == [1]
+    t, label = ab.cheapest_reaching(curve, 1.0)
+    assert label == "k=1" and t == curve[0]["seconds"]
+    assert ab.cheapest_reaching(curve, 0.0)[1] == "not reached"

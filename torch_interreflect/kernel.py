@@ -8,6 +8,7 @@ container also holds the facet areas (for reciprocity ``A_i F_ij = A_j F_ji`` an
 from __future__ import annotations
 
 import math
+import warnings
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -145,7 +146,10 @@ class FormFactors:
             max_row_mass=float(max_row_mass),
         )
         info.pop("_solve_plan", None)
-        return FormFactors(mat.to_sparse_csr(), self.areas.detach(), info)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", UserWarning)  # "sparse CSR support is in beta"
+            csr = mat.to_sparse_csr()
+        return FormFactors(csr, self.areas.detach(), info)
 
     def row_sums(self) -> Tensor:
         """``Σ_j F_ij`` per facet ``[F]``: 1 in a closed scene, less where part of the hemisphere is open."""
