@@ -14,6 +14,7 @@ from . import camera, errors, imaging, inverse, layers, lights, raycast, scenes,
 from ._version import __version__
 from .camera import Camera, spectral_to_rgb
 from .formfactors import form_factors
+from .hierarchical import HierarchicalFormFactors, hierarchical_form_factors
 from .kernel import FormFactors
 from .scene import Scene
 from .solve import radiance, solve
@@ -21,11 +22,13 @@ from .solve import radiance, solve
 __all__ = [
     "Camera",
     "FormFactors",
+    "HierarchicalFormFactors",
     "Scene",
     "__version__",
     "camera",
     "errors",
     "form_factors",
+    "hierarchical_form_factors",
     "imaging",
     "inverse",
     "layers",

@@ -20,7 +20,7 @@ from __future__ import annotations
 import math
 import time
 from functools import cache
-from typing import Literal
+from typing import Any, Literal
 
 import numpy as np
 import torch
@@ -613,10 +613,10 @@ class _PointVisibility:
     point-to-polygon factor over the plain one as ``n`` grows.
     """
 
-    def __init__(self, sc: Scene, n: int) -> None:
+    def __init__(self, sc: Scene, n: int, caster: Any = None) -> None:
         from .raycast import RayCaster
 
-        self.caster = RayCaster(sc)
+        self.caster = caster if caster is not None else RayCaster(sc)
         pts, wts = _facet_samples(sc.corners, n)  # [F, S, 3], [F, S]
         self.origin = torch.as_tensor(self.caster.origin)
         self.pts = (pts - self.origin).float()
