@@ -171,14 +171,18 @@ def _traverse(
         if adm.any():
             ia, ib = pa[adm], pb[adm]
             v = visibility(ia, ib)
-            partial = (v > 0) & (v < 1) & ~both_leaves[adm]
-            keep = ~partial & (v > 0)
+            partly = (v > 0) & (v < 1)
+            partial = partly & ~both_leaves[adm]
+            keep = ~partly & (v > 0)
             far.a.append(ia[keep])
             far.b.append(ib[keep])
             far.vis.append(v[keep])
             stats["zero_blocks"] += int((v <= 0).sum())
             stats["refined_for_visibility"] += int(partial.sum())
-            split[np.nonzero(adm)[0][partial]] = True
+            where = np.nonzero(adm)[0]
+            split[where[partial]] = True
+            # partly visible leaf pairs: exact near field (per-point visibility) rather than one averaged V
+            near[where[partly & both_leaves[adm]]] = True
         near_a.append(pa[near])
         near_b.append(pb[near])
         # children of the pairs to split
@@ -309,21 +313,20 @@ class HierarchicalFormFactors:
         True
     """
 
-    def __init__(self, near: Tensor, areas: Tensor, normals: Tensor, perm: Tensor, leaf_of: Tensor,
-                 parent: Tensor, child: Tensor, levels: list[Tensor], block_a: Tensor, block_b: Tensor, omega: Tensor,
-                 coef: Tensor, info: dict[str, Any]) -> None:
-        self.near = near
-        self.areas = areas
-        self.normals = normals
-        self.perm = perm  # position -> facet
-        self.leaf_of = leaf_of  # position -> leaf node
-        self.parent = parent  # node -> parent (-1 at the root)
-        self.child = child  # node -> its two children [nodes, 2] (0 for leaves; never read there)
-        self.levels = levels  # internal nodes by depth (deepest last): children summed into them
-        self.block_a, self.block_b = block_a, block_b
-        self.omega, self.coef = omega, coef  # unit direction a→b [K, 3]; V / (π d²) [K]
+    #: names of the tensors that make up the operator (all moved together by :meth:`to`)
+    _NAMES = ("near", "areas", "normals", "points", "perm", "leaf_of", "parent", "child", "centre", "block_a",
+              "block_b", "omega", "coef", "dist")
+
+    def __init__(self, tensors: dict[str, Tensor], levels: list[Tensor], info: dict[str, Any], order: int = 1) -> None:
+        for k in self._NAMES:
+            setattr(self, k, tensors[k])
+        # near: CSR F (exact); areas, normals [F]; points: facet centroids relative to the scene centre [F, 3];
+        # perm: position -> facet; leaf_of: position -> leaf node; parent/child: tree links (child 0 at leaves);
+        # centre: node centres (relative) [nodes, 3]; block_a/b, omega (unit a→b), coef = V/(π d²), dist d [K]
+        self.levels = levels  # internal nodes by depth (root first)
+        self.order = order
         self.info = info
-        self.num_nodes = int(parent.numel())
+        self.num_nodes = int(self.parent.numel())
 
     # ------------------------------------------------------------------ properties
     @property
@@ -343,9 +346,7 @@ class HierarchicalFormFactors:
         return int(self.block_a.numel())
 
     def _tensors(self) -> dict[str, Tensor]:
-        names = ("near", "areas", "normals", "perm", "leaf_of", "parent", "child", "block_a", "block_b", "omega",
-                 "coef")
-        return {k: getattr(self, k) for k in names}
+        return {k: getattr(self, k) for k in self._NAMES}
 
     def nbytes(self) -> int:
         """Bytes held by the operator's tensors (near field, far blocks, tree)."""
@@ -359,32 +360,74 @@ class HierarchicalFormFactors:
 
     # ------------------------------------------------------------------ products
     def far_matmul(self, x: Tensor) -> Tensor:
-        """The far-field part of ``F @ x`` for ``x`` of shape ``[F, N]``."""
+        """The far-field part of ``F @ x`` for ``x`` of shape ``[F, N]``.
+
+        Order 0: ``F_ij ≈ A_j V n_iᵀ W n_j`` with ``W = −ωωᵀ/(π d²)``. Order 1 adds the first-order Taylor terms in
+        the positions of both facets about their cluster centres, ``A_j V n_iᵀ (G(δ_j) − G(δ_i)) n_j`` with
+        ``G(v) = (−vωᵀ − ωvᵀ + 4(ω·v)ωωᵀ)/(π d³)``, which is still separable (cluster moments ``Σ A_j x_j n_j`` and
+        ``Σ A_j x_j δ_j n_jᵀ``) and still reciprocal (``G`` is odd in ω).
+        """
         n_cols = x.shape[1]
-        xp = x[self.perm]  # positions
-        w = (self.normals[self.perm] * self.areas[self.perm, None])  # [F, 3]
-        m = torch.zeros(self.num_nodes, 3, n_cols, dtype=x.dtype, device=x.device)
+        dt, dev = x.dtype, x.device
+        perm = self.perm
+        xp = x[perm]  # positions
+        nrm = self.normals[perm]
+        w = nrm * self.areas[perm, None]  # [F, 3]
+        first = self.order >= 1
+        m = torch.zeros(self.num_nodes, 3, n_cols, dtype=dt, device=dev)
         m.index_add_(0, self.leaf_of, w[:, :, None] * xp[:, None, :])
+        if first:
+            pts = self.points[perm]
+            # P = Σ A_j x_j y_j n_jᵀ  [nodes, 3 (y), 3 (n), N]
+            p = torch.zeros(self.num_nodes, 3, 3, n_cols, dtype=dt, device=dev)
+            p.index_add_(0, self.leaf_of, (pts[:, :, None] * w[:, None, :])[..., None] * xp[:, None, None, :])
         for idx in reversed(self.levels):  # deepest internal nodes first: children are complete
-            kids = self._children_of(idx)
-            m[idx] = m[kids[0]] + m[kids[1]]
+            c0, c1 = self._children_of(idx)
+            m[idx] = m[c0] + m[c1]
+            if first:
+                p[idx] = p[c0] + p[c1]
         t = torch.zeros_like(m)
-        chunk = max(1, (1 << 24) // max(3 * n_cols, 1))
+        q = torch.zeros(self.num_nodes, 3, 3, n_cols, dtype=dt, device=dev) if first else None
+        if first:
+            s_mom = p - self.centre[:, :, None, None] * m[:, None, :, :]  # Σ A x δ nᵀ, δ = y − c
+        chunk = max(1, (1 << 22) // max(9 * n_cols, 1))
+        eye = torch.eye(3, dtype=dt, device=dev)
         for s in range(0, self.num_far_blocks, chunk):
             a, b = self.block_a[s : s + chunk], self.block_b[s : s + chunk]
             om, c = self.omega[s : s + chunk], self.coef[s : s + chunk]
-            # far field of i in a: (n_i·ω) c (−ω·M_b); of j in b: (n_j·(−ω)) c (ω·M_a)
-            pb = torch.einsum("kx,kxn->kn", om, m[b]) * c[:, None]
-            pa = torch.einsum("kx,kxn->kn", om, m[a]) * c[:, None]
-            t.index_add_(0, a, om[:, :, None] * (-pb)[:, None, :])
-            t.index_add_(0, b, om[:, :, None] * (-pa)[:, None, :])
+            for src, dst, o in ((b, a, om), (a, b, -om)):
+                ms = m[src]  # [k, 3, N]
+                wm = torch.einsum("kx,kxn->kn", o, ms)  # ω·M
+                contrib = o[:, :, None] * (-c[:, None] * wm)[:, None, :]
+                if first:
+                    kap = (c / self.dist[s : s + chunk])[:, None]  # V / (π d³)
+                    sb = s_mom[src]  # [k, 3, 3, N]
+                    sw = torch.einsum("kynN,kn->kyN", sb, o)  # S ω
+                    tr = sb.diagonal(dim1=1, dim2=2).sum(-1)  # [k, N]
+                    wsw = torch.einsum("ky,kyN->kN", o, sw)
+                    ca = self.centre[dst]
+                    oc = (o * ca).sum(-1)[:, None]  # ω·c_A
+                    cm = torch.einsum("kx,kxn->kn", ca, ms)  # c_A·M
+                    vec = (-sw - o[:, :, None] * tr[:, None, :] + 4 * o[:, :, None] * wsw[:, None, :]
+                           - ca[:, :, None] * wm[:, None, :] - o[:, :, None] * cm[:, None, :]
+                           + 4 * (oc * wm)[:, None, :] * o[:, :, None])
+                    contrib = contrib + kap[:, :, None] * vec
+                    qq = (o[:, :, None, None] * ms[:, None, :, :]
+                          + wm[:, None, None, :] * (eye - 4 * o[:, :, None] * o[:, None, :])[..., None])
+                    q.index_add_(0, dst, kap[:, :, None, None] * qq)
+                t.index_add_(0, dst, contrib)
         for idx in self.levels:  # root first: push every node's field down to its children
-            kids = self._children_of(idx)
-            t[kids[0]] += t[idx]
-            t[kids[1]] += t[idx]
-        yp = torch.einsum("fx,fxn->fn", self.normals[self.perm], t[self.leaf_of])
+            c0, c1 = self._children_of(idx)
+            t[c0] += t[idx]
+            t[c1] += t[idx]
+            if first:
+                q[c0] += q[idx]
+                q[c1] += q[idx]
+        yp = torch.einsum("fx,fxn->fn", nrm, t[self.leaf_of])
+        if first:
+            yp = yp + torch.einsum("fx,fxyn,fy->fn", nrm, q[self.leaf_of], pts)
         y = torch.empty_like(yp)
-        y[self.perm] = yp
+        y[perm] = yp
         return y
 
     def _children_of(self, idx: Tensor) -> tuple[Tensor, Tensor]:
@@ -441,11 +484,9 @@ class HierarchicalFormFactors:
         if near.dtype != probe.dtype and probe.dtype.is_floating_point:
             near = near.to(probe.dtype)
         info = {k: v for k, v in self.info.items() if k != "_row_sums"}
-        return HierarchicalFormFactors(
-            near, conv(self.areas), conv(self.normals), conv(self.perm), conv(self.leaf_of), conv(self.parent),
-            conv(self.child), [conv(t) for t in self.levels], conv(self.block_a), conv(self.block_b), conv(self.omega),
-            conv(self.coef), info,
-        )
+        tensors = {k: conv(v) for k, v in self._tensors().items() if k != "near"}
+        tensors["near"] = near
+        return HierarchicalFormFactors(tensors, [conv(t) for t in self.levels], info, self.order)
 
     def __repr__(self) -> str:
         return (f"HierarchicalFormFactors(num_facets={self.num_facets}, near_nnz={self.info.get('near_nnz')}, "
@@ -461,7 +502,8 @@ def hierarchical_form_factors(
     occlusion: Literal["auto"] | bool = "auto",
     quadrature_tol: float = 1e-4,
     visibility_samples: int = 3,
-    cluster_samples: int = 4,
+    cluster_samples: int = 8,
+    order: int = 1,
     error_samples: int = 2000,
     chunk_pairs: int = 1 << 21,
     progress: bool | None = None,
@@ -482,6 +524,9 @@ def hierarchical_form_factors(
         visibility_samples: Per-point visibility samples per direction for near pairs (as in the dense kernel).
         cluster_samples: Sample facets per cluster for a far block's visible fraction
             (``cluster_samples²`` rays per block).
+        order: Far-field expansion order: 0 (the separable centre-to-centre kernel) or 1 (adds the first-order
+            terms in each facet's offset from its cluster centre: about ``eta`` times smaller errors for ~3× the
+            cost of a far-field product).
         error_samples: Far-block facet pairs evaluated exactly to estimate the error of a product
             (``info["estimated_rel_error"]``); 0 skips it.
         chunk_pairs: Near-field facet pairs evaluated per chunk (bounds the temporary memory).
@@ -525,6 +570,8 @@ def hierarchical_form_factors(
     for name, val in (("visibility_samples", visibility_samples), ("cluster_samples", cluster_samples)):
         if isinstance(val, bool) or not isinstance(val, int) or val < 1:
             raise ValueRangeError(f"{name} must be an integer >= 1; got {val!r}")
+    if order not in (0, 1) or isinstance(order, bool):
+        raise ValueRangeError(f"order must be 0 or 1; got {order!r}")
     if isinstance(error_samples, bool) or not isinstance(error_samples, int) or error_samples < 0:
         raise ValueRangeError(f"error_samples must be an integer >= 0; got {error_samples!r}")
     t_all = time.perf_counter()
@@ -574,6 +621,7 @@ def hierarchical_form_factors(
         bar.update(int(cum[e - 1] - base))
         s = e
         iu, ju = perm[iu], perm[ju]
+        iu, ju = torch.minimum(iu, ju), torch.maximum(iu, ju)  # as the dense kernel orders its pairs
         keep = _mutual_facing(sc, iu, ju, eps)
         iu, ju = iu[keep], ju[keep]
         if iu.numel() == 0:
@@ -617,12 +665,16 @@ def hierarchical_form_factors(
     depths = range(int(tree.depth.max()) + 1)
     levels = [torch.as_tensor(np.nonzero(internal & (tree.depth == d))[0]) for d in depths]
     levels = [lv for lv in levels if lv.numel()]
-    child = torch.as_tensor(np.where(tree.child < 0, 0, tree.child))
-    out = HierarchicalFormFactors(
-        near, sc.areas.detach().clone(), sc.normals.detach().clone(), perm, torch.as_tensor(leaf_of),
-        torch.as_tensor(tree.parent), child, levels, torch.as_tensor(fa), torch.as_tensor(fb),
-        torch.as_tensor(omega), torch.as_tensor(coef), info,
-    )
+    origin = sc.centroids.detach().mean(0)
+    tensors = {
+        "near": near, "areas": sc.areas.detach().clone(), "normals": sc.normals.detach().clone(),
+        "points": sc.centroids.detach() - origin, "perm": perm, "leaf_of": torch.as_tensor(leaf_of),
+        "parent": torch.as_tensor(tree.parent), "child": torch.as_tensor(np.where(tree.child < 0, 0, tree.child)),
+        "centre": torch.as_tensor(tree.centre) - origin, "block_a": torch.as_tensor(fa),
+        "block_b": torch.as_tensor(fb), "omega": torch.as_tensor(omega), "coef": torch.as_tensor(coef),
+        "dist": torch.as_tensor(dist),
+    }
+    out = HierarchicalFormFactors(tensors, levels, info, order)
     info["far_blocks"] = out.num_far_blocks
 
     # ------------------------------------------------------------------ error estimate from sampled far entries
@@ -683,8 +735,18 @@ def _estimate_error(K: HierarchicalFormFactors, sc: Scene, tree: _Tree, fa: np.n
     ra = rng.integers(tree.start[fa[pick]], tree.end[fa[pick]])
     rb = rng.integers(tree.start[fb[pick]], tree.end[fb[pick]])
     i, j = tree.perm[ra], tree.perm[rb]
-    approx = ((normals[i] * om[pick]).sum(1) * -(normals[j] * om[pick]).sum(1) * areas[j] * K.coef.numpy()[pick]
-              / np.maximum(fv[pick], 1e-300))
+    o, d = om[pick], K.dist.numpy()[pick]
+    ni, nj = normals[i], normals[j]
+    oi, oj = (ni * o).sum(1), (nj * o).sum(1)
+    kern = oi * -oj / (math.pi * d * d)
+    if K.order >= 1:
+        pts, cen = K.points.numpy(), K.centre.numpy()
+
+        def ngn(v: np.ndarray) -> np.ndarray:
+            return (-(ni * v).sum(1) * oj - oi * (v * nj).sum(1) + 4 * (o * v).sum(1) * oi * oj) / (math.pi * d**3)
+
+        kern = kern + ngn(pts[j] - cen[fb[pick]]) - ngn(pts[i] - cen[fa[pick]])
+    approx = areas[j] * kern
     it, jt = torch.as_tensor(i), torch.as_tensor(j)
     keep = _mutual_facing(sc, it, jt, eps)
     exact = np.zeros(samples)
@@ -692,7 +754,7 @@ def _estimate_error(K: HierarchicalFormFactors, sc: Scene, tree: _Tree, fa: np.n
         _, _, value, _, _ = _pair_values(sc, it[keep], jt[keep], False, 1e-4, None, 1, 1 << 18, False, {}, eps)
         # value = A_dom F_dom,tgt; we want F_ij = value / A_i
         exact[keep.numpy()] = value.numpy() / areas[i[keep.numpy()]]
-    rel = np.sqrt(np.mean(((approx - exact) / np.maximum(approx, 1e-300)) ** 2))
+    rel = float(np.sqrt(np.mean((approx - exact) ** 2) / max(np.mean(approx**2), 1e-300)))
     # far share of Σ A_i (F 1)_i
     rs = K.row_sums().numpy()
     total = float((areas * rs).sum())
