@@ -189,7 +189,7 @@ def write(err_rows: list, scale_rows: list, args: argparse.Namespace) -> None:
         "",
         f"`python benchmarks/hierarchical.py{' --quick' if args.quick else ''}`, {args.threads} torch threads, CPU "
         f"({platform.processor() or platform.machine()}), Python {platform.python_version()}, float64. "
-        "Default settings otherwise (`leaf_size=16`, `order=1`, `quadrature_tol=1e-4`, occlusion `auto`). Every point "
+        "Default settings otherwise (`leaf_size=16`, `order=1`, `quadrature_tol=1e-6`, occlusion `auto`). Every point "
         "is its own subprocess; peak RSS is that process's `VmHWM` (Python, torch and the scene included).",
         "",
         "## (a) Error against the dense kernel",

@@ -500,7 +500,7 @@ def hierarchical_form_factors(
     eta: float = 0.5,
     leaf_size: int = 16,
     occlusion: Literal["auto"] | bool = "auto",
-    quadrature_tol: float = 1e-4,
+    quadrature_tol: float = 1e-6,
     visibility_samples: int = 3,
     cluster_samples: int = 8,
     order: int = 1,
