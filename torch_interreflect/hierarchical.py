@@ -24,6 +24,12 @@ the interaction of the root with itself recursively, as in hierarchical radiosit
 
 Memory is ``O(F·leaf_size·(near leaves))`` for the near field plus ``O(blocks)`` for the far field, nothing
 ``[F, F]``. After construction every product is plain torch (CPU or CUDA, float32 or float64).
+
+Lights: :func:`~torch_interreflect.layers.light_geometry` (``"sky"`` from the row sums, area lights from one
+product) and :func:`~torch_interreflect.lights.sky` accept the operator as they accept a
+:class:`~torch_interreflect.FormFactors`; ``lights.sky``'s default back-face test builds an ``[F, F]`` facing
+matrix and casts rays from every facet with ray-cast visibility, so above ~20,000 facets pass ``backfaces=False``
+or use ``light_geometry("sky", ...)``.
 """
 
 from __future__ import annotations
@@ -473,15 +479,13 @@ class HierarchicalFormFactors:
 
     def to(self, *args: Any, **kwargs: Any) -> HierarchicalFormFactors:
         """Move/cast like :meth:`torch.Tensor.to` (index tensors keep their integer dtype)."""
-        def conv(t: Tensor) -> Tensor:
-            if t.is_floating_point():
-                return t.to(*args, **kwargs)
-            probe = torch.empty(0).to(*args, **kwargs)
-            return t.to(probe.device)
+        probe = torch.empty(0, dtype=self.dtype, device=self.device).to(*args, **kwargs)
 
-        probe = torch.empty(0).to(*args, **kwargs)
+        def conv(t: Tensor) -> Tensor:
+            return t.to(device=probe.device, dtype=probe.dtype if t.is_floating_point() else t.dtype)
+
         near = self.near.to(probe.device)
-        if near.dtype != probe.dtype and probe.dtype.is_floating_point:
+        if near.dtype != probe.dtype:
             near = near.to(probe.dtype)
         info = {k: v for k, v in self.info.items() if k != "_row_sums"}
         tensors = {k: conv(v) for k, v in self._tensors().items() if k != "near"}
