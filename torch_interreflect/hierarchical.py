@@ -266,25 +266,56 @@ class _ClusterVisibility:
         pos = t.start[nodes][:, None] + (k[None, :] * (t.end - t.start)[nodes][:, None]).astype(np.int64)
         return t.perm[pos]
 
+    def _members(self, nodes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``(k, facet)``: every facet of every node ``nodes[k]``."""
+        t = self.tree
+        size = t.end[nodes] - t.start[nodes]
+        k = np.repeat(np.arange(nodes.size), size)
+        pos = np.arange(int(size.sum())) - np.repeat(np.cumsum(size) - size, size) + t.start[nodes][k]
+        return k, t.perm[pos]
+
     def __call__(self, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        """Kernel-weighted visible fraction per block; every facet of each side casts ``samples`` rays to sample
+        facets of the other side, so a facet hidden from the other cluster makes the block partly visible."""
         t0 = time.perf_counter()
         v = np.ones(a.size)
         need = np.nonzero(self.candidates(a, b))[0]
         if need.size and self.caster is not None:
-            fa, fb = self._sample(a[need]), self._sample(b[need])  # [n, S]
+            t = self.tree
             S = self.samples
-            xa = np.repeat(fa, S, axis=1)  # [n, S²]
-            xb = np.tile(fb, (1, S))
-            pa, pb = self.cent[xa], self.cent[xb]
-            r = pb - pa
-            d2 = np.maximum((r * r).sum(-1), 1e-300)
-            w = (np.maximum((self.normals[xa] * r).sum(-1), 0) * np.maximum(-(self.normals[xb] * r).sum(-1), 0)
-                 / (d2 * d2) * self.areas[xa] * self.areas[xb])
-            blocked = self.caster.segments_blocked(pa.reshape(-1, 3), pb.reshape(-1, 3)).reshape(w.shape)
-            den = w.sum(1)
-            num = (w * ~blocked).sum(1)
-            v[need] = np.where(den > 0, num / np.maximum(den, 1e-300), 1.0)
-            self.rays += int(w.size)
+            sizes = (t.end - t.start)[a[need]] + (t.end - t.start)[b[need]]
+            budget = max(1, (1 << 22) // S)
+            s = 0
+            cum = np.cumsum(sizes)
+            while s < need.size:
+                base = cum[s - 1] if s else 0
+                e = max(s + 1, int(np.searchsorted(cum, base + budget, side="right")))
+                blk = need[s:e]
+                num = np.zeros(blk.size)
+                den = np.zeros(blk.size)
+                hid = []
+                for src, dst in ((a[blk], b[blk]), (b[blk], a[blk])):
+                    k, fi = self._members(src)
+                    fj = self._sample(dst)[k]  # [n, S]
+                    xi = np.repeat(fi[:, None], S, axis=1)
+                    pa, pb = self.cent[xi], self.cent[fj]
+                    r = pb - pa
+                    d2 = np.maximum((r * r).sum(-1), 1e-300)
+                    w = (np.maximum((self.normals[xi] * r).sum(-1), 0) * np.maximum(-(self.normals[fj] * r).sum(-1), 0)
+                         / (d2 * d2) * self.areas[xi] * self.areas[fj])
+                    blocked = self.caster.segments_blocked(pa.reshape(-1, 3), pb.reshape(-1, 3)).reshape(w.shape)
+                    np.add.at(num, k, (w * ~blocked).sum(1))
+                    np.add.at(den, k, w.sum(1))
+                    # a facet with every weighted ray blocked (or none) while the block is visible: partly visible
+                    self.rays += int(w.size)
+                    hidden = np.zeros(blk.size, dtype=bool)
+                    np.logical_or.at(hidden, k, ((w > 0) & blocked).any(1))
+                    hid.append(hidden)
+                vis = np.where(den > 0, num / np.maximum(den, 1e-300), 1.0)
+                # any blocked ray makes a visible block "partly visible" (split further / exact near field)
+                partly = (hid[0] | hid[1]) & (vis > 0)
+                v[blk] = np.where(partly, np.minimum(vis, 1.0 - 1e-9), vis)
+                s = e
             self.blocks += int(need.size)
         self.seconds += time.perf_counter() - t0
         return v
@@ -506,7 +537,7 @@ def hierarchical_form_factors(
     occlusion: Literal["auto"] | bool = "auto",
     quadrature_tol: float = 1e-6,
     visibility_samples: int = 3,
-    cluster_samples: int = 8,
+    cluster_samples: int = 4,
     order: int = 1,
     error_samples: int = 2000,
     chunk_pairs: int = 1 << 21,
@@ -526,8 +557,9 @@ def hierarchical_form_factors(
         quadrature_tol: Relative accuracy of the near-field quadrature (as ``tol`` of
             :func:`~torch_interreflect.form_factors`).
         visibility_samples: Per-point visibility samples per direction for near pairs (as in the dense kernel).
-        cluster_samples: Sample facets per cluster for a far block's visible fraction
-            (``cluster_samples²`` rays per block).
+        cluster_samples: Sample facets per cluster for a far block's visibility: where a third facet could
+            block, every facet of each cluster casts ``cluster_samples`` rays to sample facets of the other, and a
+            block with any blocked ray is split further (exact near field at leaf level).
         order: Far-field expansion order: 0 (the separable centre-to-centre kernel) or 1 (adds the first-order
             terms in each facet's offset from its cluster centre: about ``eta`` times smaller errors for ~3× the
             cost of a far-field product).
