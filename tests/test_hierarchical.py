@@ -122,6 +122,8 @@ def test_gradcheck_reflectance_and_e0():
     r = (0.8 * torch.rand(sc.num_facets, 2, dtype=torch.float64, generator=g)).requires_grad_()
     e0 = torch.rand(sc.num_facets, 2, dtype=torch.float64, generator=g).requires_grad_()
     assert torch.autograd.gradcheck(lambda a, b: ti.solve(hier, a, b, tol=1e-12), (r, e0))
+    # the n-bounce series goes through the (differentiable) products
+    assert torch.autograd.gradcheck(lambda a, b: ti.solve(hier, a, b, bounces=3), (r, e0))
 
 
 def test_dense_operator_matches_matmul(box):
