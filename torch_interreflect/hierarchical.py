@@ -8,7 +8,8 @@ the interaction of the root with itself recursively, as in hierarchical radiosit
 - **Zero blocks** (exact): every point of one cluster lies on or behind every facet plane of the other; such
   facets never exchange light (coplanar walls, back-to-back faces).
 - **Far blocks** (approximated): clusters A and B whose radii are small against their distance,
-  ``r_A + r_B ≤ eta·d``, and whose facets all face the other cluster's centre. With ``ω = (c_B − c_A)/d``:
+  ``r_A + r_B ≤ eta·d``, and each lying entirely on or in front of every facet plane of the other (so the
+  exact kernel needs no clipping between them). With ``ω = (c_B − c_A)/d``:
 
       F_ij ≈ (n_i·ω) (−n_j·ω) A_j V_AB / (π d²),     i ∈ A, j ∈ B   (and the same with i, j swapped)
 
@@ -139,6 +140,14 @@ def _behind(tree: _Tree, a: np.ndarray, b: np.ndarray, dist: np.ndarray, eps: fl
     return _support(tree, b, tree.axis[a]) - tree.smin[a] + tree.delta[a] * reach <= eps
 
 
+def _in_front(tree: _Tree, a: np.ndarray, b: np.ndarray, dist: np.ndarray, eps: float) -> np.ndarray:
+    """Every corner of node b lies on or in front of (within ``eps``) the plane of every facet of node a, so the
+    kernel needs no clipping between the two clusters."""
+    reach = dist + tree.radius[a] + tree.radius[b]
+    low_b = -_support(tree, b, -tree.axis[a])  # lower bound of axis_a·y over b
+    return low_b - tree.smax[a] - tree.delta[a] * reach >= -eps
+
+
 @dataclass
 class _Blocks:
     a: list[np.ndarray] = field(default_factory=list)
@@ -171,6 +180,10 @@ def _traverse(
         cos_a = (tree.axis[pa] * omega).sum(1) - tree.delta[pa]
         cos_b = -(tree.axis[pb] * omega).sum(1) - tree.delta[pb]
         adm = ~same & ~zero & (rsum <= eta * dist) & (cos_a > 0) & (cos_b > 0)
+        if adm.any():
+            idx = np.nonzero(adm)[0]
+            ok = _in_front(tree, pa[idx], pb[idx], dist[idx], eps) & _in_front(tree, pb[idx], pa[idx], dist[idx], eps)
+            adm[idx[~ok]] = False
         both_leaves = leaf[pa] & leaf[pb]
         split = ~zero & ~adm & ~both_leaves
         near = ~zero & ~adm & both_leaves
