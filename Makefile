@@ -6,7 +6,8 @@ BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed-dev
 OUT    ?= out
 
-.PHONY: install demo train-cc test lint bench bench-install bench-speed bench-solver bench-formfactors bench-accuracy clean
+.PHONY: install demo train-cc test lint bench bench-install bench-speed bench-solver bench-formfactors \
+	bench-accuracy bench-hierarchical bench-hierarchical-quick clean
 
 $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
@@ -31,6 +32,12 @@ test: $(STAMP) lint
 bench-formfactors: $(STAMP)
 	$(BIN)/python benchmarks/formfactors.py --quick
 
+bench-hierarchical: $(STAMP)
+	$(BIN)/python benchmarks/hierarchical.py
+
+bench-hierarchical-quick: $(STAMP)
+	$(BIN)/python benchmarks/hierarchical.py --quick
+
 bench-solver: $(STAMP)
 	$(BIN)/python benchmarks/solver.py
 
@@ -44,7 +51,7 @@ bench-install: $(STAMP)
 bench-speed: bench-install
 	$(BIN)/python benchmarks/speed_vs_error.py --quick
 
-bench: bench-formfactors bench-solver bench-speed bench-accuracy
+bench: bench-formfactors bench-solver bench-speed bench-accuracy bench-hierarchical-quick
 
 clean:
 	rm -rf $(OUT) .pytest_cache .ruff_cache

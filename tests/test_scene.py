@@ -148,3 +148,24 @@ def test_w_shape_parts_face_each_other_across_valleys():
     n = [s.normals[m == k][0] for k in range(4)]
     assert float((c[1] - c[0]) @ n[0]) > 0 and float((c[0] - c[1]) @ n[1]) > 0
     assert float((c[3] - c[2]) @ n[2]) > 0 and float((c[2] - c[3]) @ n[3]) > 0
+
+
+def test_room_parts_and_scaling():
+    s = ti.scenes.room(divisions=2, dtype=torch.float64)
+    assert s.material_names == ["floor", "ceiling", "walls", "table", "cabinet", "box", "lamp"]
+    # the shell faces inward: every shell facet's normal points toward the room's centre
+    shell = s.material <= 2
+    centre = torch.tensor([2.0, 2.5, 1.3], dtype=torch.float64)
+    assert bool((((centre - s.centroids[shell]) * s.normals[shell]).sum(1) > 0).all())
+    # shell area: floor + ceiling + walls of a 4 × 5 × 2.6 m room
+    torch.testing.assert_close(s.areas[shell].sum(), torch.tensor(2 * 20.0 + 2 * 2.6 * 9.0, dtype=torch.float64))
+    # furniture faces outward (away from its own centre); the lamp faces down
+    cab = s.material == s.material_names.index("cabinet")
+    assert bool((((s.centroids[cab] - s.centroids[cab].mean(0)) * s.normals[cab]).sum(1) > 0).all())
+    lamp = s.normals[s.material == s.material_names.index("lamp")]
+    torch.testing.assert_close(lamp, torch.tensor([[0.0, 0.0, -1.0]], dtype=torch.float64).expand_as(lamp))
+    # facets per metre: about 98 · divisions² facets
+    n4 = ti.scenes.room(divisions=4).num_facets
+    assert 1400 < n4 < 1800 and n4 > 3 * s.num_facets
+    with pytest.raises(ValueError, match="divisions"):
+        ti.scenes.room(divisions=0)

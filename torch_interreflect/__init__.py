@@ -15,6 +15,7 @@ from ._version import __version__
 from .accuracy import AccuracyReport, RenderResult, render
 from .camera import Camera, spectral_to_rgb
 from .formfactors import form_factors
+from .hierarchical import HierarchicalFormFactors, hierarchical_form_factors
 from .kernel import FormFactors
 from .scene import Scene
 from .solve import radiance, solve
@@ -23,6 +24,7 @@ __all__ = [
     "AccuracyReport",
     "Camera",
     "FormFactors",
+    "HierarchicalFormFactors",
     "RenderResult",
     "Scene",
     "__version__",
@@ -30,6 +32,7 @@ __all__ = [
     "camera",
     "errors",
     "form_factors",
+    "hierarchical_form_factors",
     "imaging",
     "inverse",
     "layers",

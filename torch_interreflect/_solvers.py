@@ -18,6 +18,7 @@ Pieces:
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -444,11 +445,48 @@ def _cg_block(
     return sa * (v0 + s * y)
 
 
-def _cg(g: Tensor, s: Tensor, rhs: Tensor, tol: float, max_iter: int, stats: Stats) -> Tensor:
+def operator_cg(
+    apply_f: Callable[[Tensor], Tensor], areas: Tensor, r: Tensor, b: Tensor, transpose: bool, tol: float,
+    max_iter: int, stats: Stats,
+) -> Tensor:
+    """:func:`_cg_block` for an ``F`` given only as a product ``apply_f(x) = F @ x`` (``[F, N] -> [F, N]``).
+
+    ``F`` must be exactly reciprocal (``A F`` symmetric); ``G = A^{1/2} F A^{-1/2}`` is applied as
+    ``sa * apply_f(v / sa)``.
+    """
+    sa = areas.sqrt()[:, None]
+
+    def g(v: Tensor) -> Tensor:
+        return sa * apply_f(v / sa)
+
+    s = r.sqrt()
+    if not transpose:
+        u0 = sa * b
+        w = _cg(g, s, s * u0, tol, max_iter, stats)
+        return (u0 + g(s * w)) / sa
+    v0 = b / sa
+    y = _cg(g, s, s * g(v0), tol, max_iter, stats)
+    return sa * (v0 + s * y)
+
+
+def operator_neumann(
+    apply_f: Callable[[Tensor], Tensor], areas: Tensor, r: Tensor, b: Tensor, transpose: bool, tol: float,
+    max_iter: int, stats: Stats,
+) -> Tensor:
+    """:func:`_neumann_block` for an ``F`` given only as a product (reciprocal: ``Fᵀ x = A F (x / A)``)."""
+    a = areas[:, None]
+    op = (lambda x: a * apply_f(x / a)) if transpose else apply_f
+    return _neumann_block(op, areas, r, b, transpose, tol, max_iter, stats)
+
+
+def _cg(g: Tensor | Callable[[Tensor], Tensor], s: Tensor, rhs: Tensor, tol: float, max_iter: int,
+        stats: Stats) -> Tensor:
     """Conjugate gradients on ``(I − S G S) w = rhs`` for all columns at once, one GEMM/SpMM per iteration.
 
-    Converged columns are written out and dropped from the working set (so later products are narrower).
+    ``g`` is a matrix or a product callable. Converged columns are written out and dropped from the working set
+    (so later products are narrower).
     """
+    gmul = g if callable(g) else g.__matmul__
     x = torch.zeros_like(rhs)
     bnorm2 = (rhs * rhs).sum(0)
     active = torch.nonzero(bnorm2 > 0).squeeze(1)
@@ -475,7 +513,7 @@ def _cg(g: Tensor, s: Tensor, rhs: Tensor, tol: float, max_iter: int, stats: Sta
                 break
             active, thresh, bn2, rr = active[keep], thresh[keep], bn2[keep], rr[keep]
             sa, res, p, xa = sa[:, keep], res[:, keep], p[:, keep], xa[:, keep]
-        ap = torch.addcmul(p, sa, g @ (sa * p), value=-1)
+        ap = torch.addcmul(p, sa, gmul(sa * p), value=-1)
         pap = torch.linalg.vecdot(p, ap, dim=0)
         if bool((pap <= 0).any()):
             raise SingularSystemError(
@@ -499,14 +537,20 @@ def _cg(g: Tensor, s: Tensor, rhs: Tensor, tol: float, max_iter: int, stats: Sta
 
 # ------------------------------------------------------------------------------------------------- Neumann
 def _neumann_block(
-    f: Tensor, areas: Tensor, r: Tensor, b: Tensor, transpose: bool, tol: float, max_iter: int, stats: Stats
+    f: Tensor | Callable[[Tensor], Tensor], areas: Tensor, r: Tensor, b: Tensor, transpose: bool, tol: float,
+    max_iter: int, stats: Stats,
 ) -> Tensor:
-    """``x ← b + F R x`` (or ``b + R Fᵀ x``) until ``‖x_{k+1} − x_k‖ ≤ tol ‖b‖`` per column (area-weighted)."""
+    """``x ← b + F R x`` (or ``b + R Fᵀ x``) until ``‖x_{k+1} − x_k‖ ≤ tol ‖b‖`` per column (area-weighted).
+
+    ``f`` is a matrix, or a callable that applies ``F`` (``Fᵀ`` when ``transpose``) to ``[F, N]`` columns.
+    """
     weight = areas.sqrt()[:, None]
+    op = f if callable(f) else None
     if transpose:
         weight = 1 / weight
-        ft = f.mT if f.layout == torch.strided else f.t().to_sparse_csr()
-    dense = f.layout == torch.strided
+        if op is None:
+            ft = f.mT if f.layout == torch.strided else f.t().to_sparse_csr()
+    dense = op is None and f.layout == torch.strided
     w2 = weight * weight
     x = b.clone()
     bnorm2 = torch.linalg.vecdot(b, b * w2, dim=0)
@@ -521,7 +565,9 @@ def _neumann_block(
     d2 = bn2
     while True:
         if it < max_iter:
-            if transpose:
+            if op is not None:
+                y = torch.addcmul(ba, ra, op(xa)) if transpose else ba + op(ra * xa)
+            elif transpose:
                 y = torch.addcmul(ba, ra, ft @ xa)
             elif dense:
                 y = torch.addmm(ba, f, ra * xa)

@@ -20,7 +20,7 @@ from __future__ import annotations
 import math
 import time
 from functools import cache
-from typing import Literal
+from typing import Any, Literal
 
 import numpy as np
 import torch
@@ -327,7 +327,6 @@ def _quadrature(
     normals = sc.normals
     cent = sc.centroids
     areas = sc.areas
-    diam = sc.diameters
     F = corners.shape[0]
     eps = _plane_eps(scene)
     info: dict = {}
@@ -343,6 +342,46 @@ def _quadrature(
         info.update(points=0, rays=0, occluded_pairs=0, occluded_facets=torch.zeros(F, dtype=torch.bool))
         return empty, empty, torch.zeros(0, dtype=torch.float64), info
 
+    dom, tgt, value, need, vis = _pair_values(
+        sc, iu, ju, occlusion, tol, adjacent_order, visibility_samples, chunk_points, progress, info, eps
+    )
+
+    # facets with a pair whose visibility was estimated by rays: their row sums are estimates, not exact
+    approx = torch.zeros(F, dtype=torch.bool)
+    approx[dom[need]] = True
+    approx[tgt[need]] = True
+    info.update(occluded_pairs=int(need.sum()), rays=vis.rays if vis else 0, occluded_facets=approx)
+
+    rows = torch.cat([dom, tgt])
+    cols = torch.cat([tgt, dom])
+    vals = torch.cat([value / areas[dom], value / areas[tgt]])
+    keep = vals > 0
+    return rows[keep], cols[keep], vals[keep], info
+
+
+def _pair_values(
+    sc: Scene,
+    iu: Tensor,
+    ju: Tensor,
+    occlusion: Literal["auto"] | bool,
+    tol: float,
+    adjacent_order: int | None,
+    visibility_samples: int,
+    chunk_points: int,
+    progress: bool,
+    info: dict,
+    eps: float,
+    vis: _PointVisibility | None = None,
+) -> tuple[Tensor, Tensor, Tensor, Tensor, _PointVisibility | None]:
+    """``A_i F_ij`` for given pairs ``(iu, ju)`` of mutually facing facets of ``sc`` (float64, CPU).
+
+    Returns ``(dom, tgt, value, need, vis)``: each pair reordered so that ``dom`` is the smaller facet (the
+    integration domain), ``value = A_dom F_dom,tgt`` (clamped at 0), ``need`` the pairs whose visibility came
+    from rays, and the visibility object (``vis`` when given, reused across calls). Adds ``points``,
+    ``seconds_quadrature``, ``seconds_visibility``, ``pairs_adjacent`` and ``pairs_clipped`` to ``info``
+    (accumulating over calls).
+    """
+    corners, normals, cent, areas, diam = sc.corners, sc.normals, sc.centroids, sc.areas, sc.diameters
     # integrate over the smaller facet of each pair (the "domain"), contour over the other ("target")
     swap = areas[iu] > areas[ju]
     dom = torch.where(swap, ju, iu)
@@ -402,7 +441,9 @@ def _quadrature(
         need = torch.ones(dom.numel(), dtype=torch.bool)
     else:
         need = _blocker_candidates(sc, dom, tgt, eps)
-    vis = _PointVisibility(sc, visibility_samples) if bool(need.any()) else None
+    if vis is None and bool(need.any()):
+        vis = _PointVisibility(sc, visibility_samples)
+    vis_before = vis.seconds if vis is not None else 0.0
     seconds_vis = time.perf_counter() - t_vis
 
     def visible(p: Tensor, x: Tensor) -> Tensor:
@@ -459,24 +500,16 @@ def _quadrature(
                 bar.update(p.numel())
     bar.close()
     value = value.clamp_min(0.0)
-    info["points"] = int(points)
-    info["seconds_quadrature"] = time.perf_counter() - t
-    info["pairs_adjacent"] = int((has_edge | has_vertex).sum())
-    info["pairs_clipped"] = int((clip_t | clip_d).sum())
-
-    # facets with a pair whose visibility was estimated by rays: their row sums are estimates, not exact
-    approx = torch.zeros(F, dtype=torch.bool)
-    approx[dom[need]] = True
-    approx[tgt[need]] = True
-    info.update(occluded_pairs=int(need.sum()), rays=vis.rays if vis else 0, occluded_facets=approx,
-                seconds_visibility=seconds_vis + (vis.seconds if vis else 0.0))
-    info["seconds_quadrature"] -= seconds_vis + (vis.seconds if vis else 0.0)
-
-    rows = torch.cat([dom, tgt])
-    cols = torch.cat([tgt, dom])
-    vals = torch.cat([value / areas[dom], value / areas[tgt]])
-    keep = vals > 0
-    return rows[keep], cols[keep], vals[keep], info
+    seconds_vis += (vis.seconds if vis is not None else 0.0) - vis_before
+    for key, add in (
+        ("points", int(points)),
+        ("seconds_quadrature", time.perf_counter() - t - seconds_vis),
+        ("seconds_visibility", seconds_vis),
+        ("pairs_adjacent", int((has_edge | has_vertex).sum())),
+        ("pairs_clipped", int((clip_t | clip_d).sum())),
+    ):
+        info[key] = info.get(key, 0) + add
+    return dom, tgt, value, need, vis
 
 
 def _facing_others(scene: Scene) -> Tensor:
@@ -504,32 +537,15 @@ def _blocker_candidates(sc: Scene, dom: Tensor, tgt: Tensor, eps: float) -> Tens
     cost is pairs × planes: the group's plane strictly separates corners of the pair, its bounding box overlaps
     the pair's, and its bounding sphere comes within reach of the pair's convex hull (which lies inside the
     capsule around the segment between the two centroids, of radius the larger facet radius)."""
-    corners, normals, cent = sc.corners, sc.normals, sc.centroids
-    offs = (normals * cent).sum(-1)
-    size = float((corners.reshape(-1, 3).max(0).values - corners.reshape(-1, 3).min(0).values).norm())
-    # group facets by plane (normal and offset rounded well above the float noise of the scene's dtype; a
-    # boundary between two rounding cells only splits a group, which stays conservative)
-    res = max(1e-6, 100.0 * eps / size)
-    key = torch.round(torch.cat([normals, offs[:, None] / size], dim=1) / res)
-    _, plane_of = torch.unique(key, dim=0, return_inverse=True)
-    n_planes = int(plane_of.max()) + 1
+    corners, cent = sc.corners, sc.centroids
+    need = torch.zeros(dom.numel(), dtype=torch.bool)
+    groups = _plane_groups(sc, eps)
+    if groups is None:
+        return need
+    pn, po, plo, phi = groups
+    n_planes = int(pn.shape[0])
     lo = corners.min(1).values
     hi = corners.max(1).values
-    idx3 = plane_of[:, None].expand(-1, 3)
-    plo = torch.full((n_planes, 3), math.inf, dtype=lo.dtype).scatter_reduce_(0, idx3, lo, "amin")
-    phi = torch.full((n_planes, 3), -math.inf, dtype=hi.dtype).scatter_reduce_(0, idx3, hi, "amax")
-    first = torch.full((n_planes,), len(plane_of), dtype=torch.int64).scatter_reduce_(
-        0, plane_of, torch.arange(len(plane_of)), "amin"
-    )
-    pn, po = normals[first], offs[first]
-    need = torch.zeros(dom.numel(), dtype=torch.bool)
-    # a plane can only separate two facets if some corner of the scene lies strictly on each side of it
-    dall = corners.reshape(-1, 3) @ pn.T - po[None, :]
-    useful = (dall > eps).any(0) & (dall < -eps).any(0)
-    if not bool(useful.any()):
-        return need
-    pn, po, plo, phi = pn[useful], po[useful], plo[useful], phi[useful]
-    n_planes = int(useful.sum())
     g_centre, g_radius = 0.5 * (plo + phi), 0.5 * (phi - plo).norm(dim=-1)
     radius = (corners - cent[:, None, :]).norm(dim=-1).max(dim=1).values
     chunk = max(1, (1 << 22) // (8 * n_planes))
@@ -551,6 +567,35 @@ def _blocker_candidates(sc: Scene, dom: Tensor, tgt: Tensor, eps: float) -> Tens
     return need
 
 
+def _plane_groups(sc: Scene, eps: float) -> tuple[Tensor, Tensor, Tensor, Tensor] | None:
+    """The planes of the scene's coplanar facet groups that could block anything: normal ``[G, 3]``, offset
+    ``[G]`` and the group's bounding box ``lo, hi [G, 3]``; None when no plane has corners on both sides."""
+    corners, normals, cent = sc.corners, sc.normals, sc.centroids
+    offs = (normals * cent).sum(-1)
+    size = float((corners.reshape(-1, 3).max(0).values - corners.reshape(-1, 3).min(0).values).norm())
+    # group facets by plane (normal and offset rounded well above the float noise of the scene's dtype; a
+    # boundary between two rounding cells only splits a group, which stays conservative)
+    res = max(1e-6, 100.0 * eps / size)
+    key = torch.round(torch.cat([normals, offs[:, None] / size], dim=1) / res)
+    _, plane_of = torch.unique(key, dim=0, return_inverse=True)
+    n_planes = int(plane_of.max()) + 1
+    lo = corners.min(1).values
+    hi = corners.max(1).values
+    idx3 = plane_of[:, None].expand(-1, 3)
+    plo = torch.full((n_planes, 3), math.inf, dtype=lo.dtype).scatter_reduce_(0, idx3, lo, "amin")
+    phi = torch.full((n_planes, 3), -math.inf, dtype=hi.dtype).scatter_reduce_(0, idx3, hi, "amax")
+    first = torch.full((n_planes,), len(plane_of), dtype=torch.int64).scatter_reduce_(
+        0, plane_of, torch.arange(len(plane_of)), "amin"
+    )
+    pn, po = normals[first], offs[first]
+    # a plane can only separate two facets if some corner of the scene lies strictly on each side of it
+    dall = corners.reshape(-1, 3) @ pn.T - po[None, :]
+    useful = (dall > eps).any(0) & (dall < -eps).any(0)
+    if not bool(useful.any()):
+        return None
+    return pn[useful], po[useful], plo[useful], phi[useful]
+
+
 def _facet_samples(corners: Tensor, n: int) -> tuple[Tensor, Tensor]:
     """Midpoint-rule points ``[F, n², 3]`` and area weights ``[F, n²]`` on each facet."""
     g = (torch.arange(n, dtype=corners.dtype) + 0.5) / n
@@ -568,10 +613,10 @@ class _PointVisibility:
     point-to-polygon factor over the plain one as ``n`` grows.
     """
 
-    def __init__(self, sc: Scene, n: int) -> None:
+    def __init__(self, sc: Scene, n: int, caster: Any = None) -> None:
         from .raycast import RayCaster
 
-        self.caster = RayCaster(sc)
+        self.caster = caster if caster is not None else RayCaster(sc)
         pts, wts = _facet_samples(sc.corners, n)  # [F, S, 3], [F, S]
         self.origin = torch.as_tensor(self.caster.origin)
         self.pts = (pts - self.origin).float()

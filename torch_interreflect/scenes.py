@@ -14,7 +14,7 @@ import torch
 
 from .scene import Scene
 
-__all__ = ["box_corner", "closed_box", "cornell_box", "grid_quads", "v_groove", "w_shape"]
+__all__ = ["box_corner", "closed_box", "cornell_box", "grid_quads", "room", "v_groove", "w_shape"]
 
 
 def _pair(x: int | Sequence[int], name: str) -> tuple[int, int]:
@@ -295,3 +295,90 @@ def cornell_box(
     uniq = list(dict.fromkeys(names))
     remap = torch.tensor([uniq.index(n) for n in names])
     return Scene._from_parts(joined.corners, joined.is_triangle, remap[joined.material], uniq)
+
+
+def _box_faces(extents: Sequence[float], centre: Sequence[float], inward: bool) -> list[tuple[np.ndarray, np.ndarray]]:
+    """The six faces of a ``trimesh.creation.box`` as ``(corners [4, 3] counter-clockwise about n, n)``."""
+    import trimesh
+
+    mesh = trimesh.creation.box(extents=extents)
+    mesh.apply_translation(np.asarray(centre, dtype=np.float64))
+    out = []
+    for tris, normal in zip(mesh.facets, mesh.facets_normal, strict=True):
+        pts = np.unique(mesh.vertices[mesh.faces[tris].reshape(-1)], axis=0)  # the face's 4 corners
+        n = -normal if inward else normal
+        c = pts.mean(0)
+        t1 = pts[0] - c
+        t2 = np.cross(n, t1)
+        order = np.argsort(np.arctan2((pts - c) @ t2, (pts - c) @ t1))
+        out.append((pts[order], n))
+    return out
+
+
+def room(
+    divisions: float = 4.0,
+    size: Sequence[float] = (4.0, 5.0, 2.6),
+    *,
+    lamp: bool = True,
+    dtype: torch.dtype | None = None,
+) -> Scene:
+    """An indoor-like room built from ``trimesh.creation.box`` primitives, for large-scene tests.
+
+    The room shell (floor, ceiling, four walls, seen from inside) holds a table (top and four legs), a cabinet
+    against a wall, a box on the table and, with ``lamp=True``, a ceiling lamp panel 1 cm below the ceiling,
+    facing down. Every box face is split into quads of about ``1 / divisions`` metres; faces resting on the floor
+    or on another box (leg tops, box and cabinet bottoms) are left out. The room is closed, so a sky light sees
+    nothing: light it with the lamp (an area light, material ``"lamp"``).
+
+    Args:
+        divisions: Facets per metre along each face edge (at least one facet per edge): about
+            ``98·divisions²`` facets for the default size (4 → 1,596, 15 → 22,171, 23 → ~51,600).
+        size: Room extents ``(x, y, z)`` in metres (z up).
+        lamp: Include the lamp panel.
+        dtype: Floating dtype.
+
+    Returns:
+        A scene with materials ``floor, ceiling, walls, table, cabinet, box`` (and ``lamp``).
+
+    Example:
+        >>> import torch_interreflect as ti
+        >>> s = ti.scenes.room(divisions=2)
+        >>> s.num_facets, s.material_names[:3]
+        (410, ['floor', 'ceiling', 'walls'])
+    """
+    if not (isinstance(divisions, (int, float)) and not isinstance(divisions, bool) and divisions > 0):
+        raise ValueError(f"divisions must be a positive number (facets per metre); got {divisions!r}")
+    sx, sy, sz = (float(v) for v in size)
+    if min(sx, sy, sz) <= 0:
+        raise ValueError(f"size must be three positive extents in metres; got {size!r}")
+    res = float(divisions)
+    tx, ty, th = 0.45 * sx, 0.5 * sy, 0.75  # table centre and height
+    parts: dict[str, list[np.ndarray]] = {k: [] for k in ("floor", "ceiling", "walls", "table", "cabinet", "box",
+                                                          "lamp")}
+
+    def add(name: str, extents: Sequence[float], centre: Sequence[float], inward: bool = False,
+            drop: tuple[str, ...] = ()) -> None:
+        for quad, n in _box_faces(extents, centre, inward):
+            if ("bottom" in drop and n[2] < -0.5) or ("top" in drop and n[2] > 0.5):
+                continue
+            a, b = quad[1] - quad[0], quad[3] - quad[0]
+            na = max(1, round(np.linalg.norm(a) * res))
+            nb = max(1, round(np.linalg.norm(b) * res))
+            q = grid_quads(quad[0], a, b, na, nb)
+            shell_key = "floor" if n[2] > 0.5 else "ceiling" if n[2] < -0.5 else "walls"
+            parts[shell_key if name == "shell" else name].append(q)
+
+    add("shell", (sx, sy, sz), (sx / 2, sy / 2, sz / 2), inward=True)
+    add("table", (1.6, 0.9, 0.05), (tx, ty, th - 0.025))
+    for ex in (-0.7, 0.7):
+        for ey in (-0.35, 0.35):
+            add("table", (0.06, 0.06, th - 0.05), (tx + ex, ty + ey, (th - 0.05) / 2), drop=("bottom", "top"))
+    add("cabinet", (0.5, 1.2, 1.8), (sx - 0.25, 0.25 * sy, 0.9), drop=("bottom",))
+    add("box", (0.4, 0.3, 0.25), (tx + 0.3, ty - 0.1, th + 0.125), drop=("bottom",))
+    if lamp:
+        lamp_q = np.array([[sx / 2 - 0.3, sy / 2 - 0.3, sz - 0.01], [sx / 2 - 0.3, sy / 2 + 0.3, sz - 0.01],
+                           [sx / 2 + 0.3, sy / 2 + 0.3, sz - 0.01], [sx / 2 + 0.3, sy / 2 - 0.3, sz - 0.01]])
+        n = max(1, round(0.6 * res))
+        parts["lamp"].append(grid_quads(lamp_q[0], lamp_q[1] - lamp_q[0], lamp_q[3] - lamp_q[0], n, n))
+    built = [(k, np.concatenate(v)) for k, v in parts.items() if v]
+    return _build(built, dtype)

@@ -402,7 +402,10 @@ def solve(
 
     Args:
         form_factors: The scene's :class:`~torch_interreflect.FormFactors` (a plain Tensor is not accepted:
-            the areas are needed for the symmetric form). ``matrix`` may require grad (dense, or sparse CSR:
+            the areas are needed for the symmetric form), or a
+            :class:`~torch_interreflect.HierarchicalFormFactors` for large scenes (methods ``"auto"`` = ``"cg"``
+            and ``"neumann"``; gradients for reflectance and ``E0`` only, the operator gets none).
+            ``matrix`` may require grad (dense, or sparse CSR:
             gradient on the stored entries only). Areas are not differentiated (``E`` does not depend on them).
         reflectance: Diffuse reflectance in [0, 1], ``[..., F]`` (grey: the same at every wavelength) or
             ``[..., F, L]``. A tensor whose dim −2 has size F is read as ``[..., F, L]``.
@@ -446,6 +449,21 @@ def solve(
         (torch.Size([3, 31]), 2.0)
     """
     if not isinstance(form_factors, FormFactors):
+        from .hierarchical import HierarchicalFormFactors
+
+        if isinstance(form_factors, HierarchicalFormFactors):  # operator path: cg / neumann, no gradient for F
+            if method not in _METHODS:
+                raise ValueError(f"method must be one of {list(_METHODS)}; got {method!r}")
+            if bounces is not None and (isinstance(bounces, bool) or not isinstance(bounces, int) or bounces < 1):
+                raise ValueError(f"bounces must be None (infinite) or an integer >= 1; got {bounces!r}")
+            if not (isinstance(tol, (int, float)) and math.isfinite(tol) and tol > 0):
+                raise ValueError(f"tol must be a positive finite number; got {tol!r}")
+            if max_iter is not None and (isinstance(max_iter, bool) or not isinstance(max_iter, int) or max_iter < 1):
+                raise ValueError(f"max_iter must be None or an integer >= 1; got {max_iter!r}")
+            from ._operator_solve import solve_operator
+
+            return solve_operator(form_factors, reflectance, E0, bounces=bounces, tol=tol, method=method,
+                                  max_iter=max_iter, return_info=return_info)
         raise TypeError(
             f"form_factors must be a FormFactors (matrix and areas); got {type(form_factors).__name__}. "
             "Wrap a matrix as FormFactors(matrix, areas)."
