@@ -70,6 +70,12 @@ BUDGET: dict[str, float] = {
 Q_MIN, Q_MAX = 1 / 3, 0.8
 
 
+#: Refinement stops (and warns) when two refinements lowered the estimated discretisation error by less than
+#: this factor: the error is then not falling with the facet size (the Cornell box's visibility), and going on
+#: would spend minutes without reaching the target.
+STALL = 0.8
+
+
 class AccuracyWarning(UserWarning):
     """The requested accuracy was not reached within the limits (``max_facets``, ``max_iterations``)."""
 
@@ -368,7 +374,8 @@ def render(
         accuracy: Target relative RMS error over facets (and columns) of the output, in ``(0, 0.5]``.
         wavelengths: Grid in nm when there is no camera (default 400–700 nm every 10 nm).
         max_facets: Most facets solved after refinement (memory and time grow as their square).
-        max_iterations: Most refinement steps.
+        max_iterations: Most refinement steps. Refinement also stops when two steps lowered the estimate by less
+            than :data:`STALL` (then the target is out of reach at any affordable size: a warning says so).
         progress: Show a progress bar (default: when the work is large).
 
     Returns:
@@ -537,6 +544,12 @@ def plan(
             break
         if it >= max_iterations:
             reason = f"max_iterations={max_iterations}"
+            break
+        if len(history) >= 3 and disc > STALL * history[-3]["estimate"]:
+            reason = (
+                f"a stalled estimate ({history[-3]['estimate']:.3g} -> {disc:.3g} over the last two refinements; "
+                "the scene converges too slowly under refinement for this target)"
+            )
             break
         sel = _select(leaves, est, budget["discretisation"] * accuracy, max_facets)
         if sel is None:
