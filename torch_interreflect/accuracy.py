@@ -47,7 +47,7 @@ from .camera import Camera
 from .errors import ShapeError, ValueRangeError
 from .formfactors import form_factors as _form_factors
 from .kernel import FormFactors
-from .scene import Scene
+from .scene import Scene, area_average
 from .solve import _estimate_cg_iterations
 from .solve import solve as _solve
 
@@ -187,11 +187,7 @@ def _split(leaves: _Leaves, sel: Tensor) -> tuple[_Leaves, Tensor]:
 
 def _to_user(values: Tensor, leaves: _Leaves, num_user: int) -> Tensor:
     """Area-weighted average of leaf values ``[..., n, C]`` onto the user facets ``[..., F, C]``."""
-    w = leaves.scene.areas.to(values)
-    num = values.new_zeros(*values.shape[:-2], num_user, values.shape[-1])
-    num = num.index_add(-2, leaves.user, values * w[:, None])
-    den = w.new_zeros(num_user).index_add(0, leaves.user, w)
-    return num / den[:, None]
+    return area_average(values, leaves.user, leaves.scene.areas, num_user)
 
 
 def _rel(a: Tensor, b: Tensor) -> Tensor:
@@ -305,13 +301,12 @@ class Plan:
             h = _solve(self.form_factors, refl_leaf, e0, tol=self.solver_tol, method=self.method)
         h_full = h @ _interp_matrix(self.grid[nodes], self.grid).to(h.dtype) if nodes.numel() < L else h
         E_leaf = S[..., None, :] * h_full
-        leaves = _Leaves(self.leaves, user)
-        E = _to_user(E_leaf, leaves, F)
+        E = area_average(E_leaf, user, self.leaves.areas, F)
         rgb = None
         if camera is not None:
             if camera.num_wavelengths != L:
                 raise ShapeError(f"the camera has {camera.num_wavelengths} wavelengths but the plan's grid {L}")
-            rgb = _to_user(camera(r[..., user, :] * E_leaf / math.pi), leaves, F)
+            rgb = area_average(camera(r[..., user, :] * E_leaf / math.pi), user, self.leaves.areas, F)
         return RenderResult(E, r * E / math.pi, rgb, self.report)
 
 

@@ -17,7 +17,7 @@ from torch import Tensor
 
 from .errors import GeometryError, ShapeError
 
-__all__ = ["Scene"]
+__all__ = ["Scene", "area_average"]
 
 #: Relative tolerance for planarity of quads (distance of the 4th vertex to the plane / facet diameter).
 PLANARITY_RTOL = 1e-5
@@ -395,12 +395,7 @@ class Scene:
                 f"values must have {fine.num_facets} facets on dim -2 and parent {fine.num_facets} entries; "
                 f"got values {list(values.shape)}, parent {list(parent.shape)}"
             )
-        w = fine.areas.to(values.dtype)
-        num = torch.zeros(*values.shape[:-2], self.num_facets, values.shape[-1], dtype=values.dtype,
-                          device=values.device)
-        num = num.index_add(-2, parent, values * w[:, None])
-        den = torch.zeros(self.num_facets, dtype=values.dtype, device=values.device).index_add(0, parent, w)
-        return num / den[:, None]
+        return area_average(values, parent, fine.areas, self.num_facets)
 
     @staticmethod
     def concatenate(scenes: Sequence[Scene]) -> Scene:
@@ -452,3 +447,24 @@ def _normals(c: Tensor) -> Tensor:
 def _areas(c: Tensor) -> Tensor:
     # Area of a planar quad = half the norm of the cross product of its diagonals (exact for triangles too).
     return 0.5 * torch.linalg.cross(c[:, 2] - c[:, 0], c[:, 3] - c[:, 1], dim=-1).norm(dim=-1)
+
+
+def area_average(values: Tensor, index: Tensor, weights: Tensor, size: int) -> Tensor:
+    """Weighted means of ``values`` grouped by ``index``: ``out[..., k, :] = Σ_{index_j = k} w_j v_j / Σ w_j``.
+
+    The tensor form of :meth:`Scene.average_to_parent` (pieces → the facets they came from); differentiable in
+    ``values``.
+
+    Args:
+        values: Per-piece values, pieces on dim ``-2``. Shape ``[..., N, C]``.
+        index: Group of each piece, in ``[0, size)``. Shape ``[N]``.
+        weights: Weight of each piece (areas, m²). Shape ``[N]``.
+        size: Number of groups.
+
+    Returns:
+        Shape ``[..., size, C]``.
+    """
+    w = weights.to(device=values.device, dtype=values.dtype)
+    num = values.new_zeros(*values.shape[:-2], size, values.shape[-1]).index_add(-2, index, values * w[:, None])
+    den = w.new_zeros(size).index_add(0, index, w)
+    return num / den[:, None]

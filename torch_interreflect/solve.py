@@ -448,26 +448,6 @@ def solve(
         >>> E.shape, round(float(E[0, 0]), 6)  # E0 / (1 - r)
         (torch.Size([3, 31]), 2.0)
     """
-    if not isinstance(form_factors, FormFactors):
-        from .hierarchical import HierarchicalFormFactors
-
-        if isinstance(form_factors, HierarchicalFormFactors):  # operator path: cg / neumann, no gradient for F
-            if method not in _METHODS:
-                raise ValueError(f"method must be one of {list(_METHODS)}; got {method!r}")
-            if bounces is not None and (isinstance(bounces, bool) or not isinstance(bounces, int) or bounces < 1):
-                raise ValueError(f"bounces must be None (infinite) or an integer >= 1; got {bounces!r}")
-            if not (isinstance(tol, (int, float)) and math.isfinite(tol) and tol > 0):
-                raise ValueError(f"tol must be a positive finite number; got {tol!r}")
-            if max_iter is not None and (isinstance(max_iter, bool) or not isinstance(max_iter, int) or max_iter < 1):
-                raise ValueError(f"max_iter must be None or an integer >= 1; got {max_iter!r}")
-            from ._operator_solve import solve_operator
-
-            return solve_operator(form_factors, reflectance, E0, bounces=bounces, tol=tol, method=method,
-                                  max_iter=max_iter, return_info=return_info)
-        raise TypeError(
-            f"form_factors must be a FormFactors (matrix and areas); got {type(form_factors).__name__}. "
-            "Wrap a matrix as FormFactors(matrix, areas)."
-        )
     if method not in _METHODS:
         raise ValueError(f"method must be one of {list(_METHODS)}; got {method!r}")
     if bounces is not None and (isinstance(bounces, bool) or not isinstance(bounces, int) or bounces < 1):
@@ -476,6 +456,18 @@ def solve(
         raise ValueError(f"tol must be a positive finite number; got {tol!r}")
     if max_iter is not None and (isinstance(max_iter, bool) or not isinstance(max_iter, int) or max_iter < 1):
         raise ValueError(f"max_iter must be None or an integer >= 1; got {max_iter!r}")
+    if not isinstance(form_factors, FormFactors):
+        from .hierarchical import HierarchicalFormFactors
+
+        if isinstance(form_factors, HierarchicalFormFactors):  # operator path: cg / neumann, no gradient for F
+            from ._operator_solve import solve_operator
+
+            return solve_operator(form_factors, reflectance, E0, bounces=bounces, tol=tol, method=method,
+                                  max_iter=max_iter, return_info=return_info)
+        raise TypeError(
+            f"form_factors must be a FormFactors (matrix and areas); got {type(form_factors).__name__}. "
+            "Wrap a matrix as FormFactors(matrix, areas)."
+        )
 
     matrix = form_factors.matrix
     n = form_factors.num_facets

@@ -34,7 +34,7 @@ from ..camera import Camera
 from ..errors import ShapeError, ValueRangeError
 from ..formfactors import form_factors as _compute_form_factors
 from ..kernel import FormFactors
-from ..scene import Scene
+from ..scene import Scene, area_average
 from ..solve import radiance as _radiance
 from ..solve import solve as _solve
 
@@ -378,13 +378,6 @@ class Interreflection(nn.Module):
         g = self.light_factor.to(device=illuminant.device)
         return g[:, None] * illuminant[..., None, :]  # on the leaves when refined
 
-    def _to_user(self, x: Tensor) -> Tensor:
-        """Area-average leaf values ``[..., n, C]`` onto the scene's facets ``[..., F, C]``."""
-        w = self.areas.to(x)
-        num = x.new_zeros(*x.shape[:-2], self.num_facets, x.shape[-1]).index_add(-2, self.leaf_user, x * w[:, None])
-        den = w.new_zeros(self.num_facets).index_add(0, self.leaf_user, w)
-        return num / den[:, None]
-
     def forward(
         self, reflectance: Tensor, illuminant: Tensor | None = None, *, E0: Tensor | None = None
     ) -> Tensor | tuple[Tensor, Tensor]:
@@ -405,7 +398,7 @@ class Interreflection(nn.Module):
                 e0 = e0.index_select(-2, self.leaf_user)  # type: ignore[union-attr]
         rgb = render(self.form_factors, r, e0, self.camera, bounces=self.bounces, tol=self.tol, method=self.method)
         if self.leaf_user is not None:
-            rgb = self._to_user(rgb)
+            rgb = area_average(rgb, self.leaf_user, self.areas, self.num_facets)
         if self.projection is None:
             return rgb
         flat = rgb.reshape(-1, *rgb.shape[-2:])
