@@ -166,8 +166,8 @@ def _subset(scene: Scene, idx: Tensor) -> Scene:
     return Scene._from_parts(scene.corners[idx], scene.is_triangle[idx], mat, scene.material_names)
 
 
-def _split(leaves: _Leaves, sel: Tensor) -> tuple[_Leaves, Tensor]:
-    """Split the selected leaves in four; returns the new leaves and, per new leaf, its leaf in the old set."""
+def _split(leaves: _Leaves, sel: Tensor) -> _Leaves:
+    """Split the selected leaves in four (kept leaves first, then the children)."""
     idx_keep = torch.nonzero(~sel).reshape(-1)
     idx_sel = torch.nonzero(sel).reshape(-1)
     fine, par = _subset(leaves.scene, idx_sel).subdivide(2)
@@ -181,8 +181,7 @@ def _split(leaves: _Leaves, sel: Tensor) -> tuple[_Leaves, Tensor]:
         mat,
         sc.material_names,
     )
-    origin = torch.cat([idx_keep, idx_sel[par]])
-    return _Leaves(scene, leaves.user[origin]), origin
+    return _Leaves(scene, leaves.user[torch.cat([idx_keep, idx_sel[par]])])
 
 
 def _to_user(values: Tensor, leaves: _Leaves, num_user: int) -> Tensor:
@@ -520,17 +519,18 @@ def plan(
                     if err <= budget["wavelengths"] * accuracy or sub.numel() == L:
                         nodes, wl_error = sub.to(dev), err
                         break
-            h, _ = solve_gain(K, refl_leaf[..., nodes], g, plan_tol)
+                h = h_full[..., nodes]  # the full-grid solve already holds the subset
+            else:
+                h, _ = solve_gain(K, refl_leaf[..., nodes], g, plan_tol)
             vals = rgb_of(h, nodes, refl_leaf) if camera is not None else h * S[..., None, nodes]
             user_vals = _to_user(vals, leaves, F)
         if prev_user is not None:
             delta = _rel(prev_user, user_vals).to(torch.float64).cpu()
-            changed = touched
             q = (delta / prev_delta).nan_to_num(0.5).clamp(Q_MIN, Q_MAX)
             q = torch.where(sampled, torch.full_like(q, Q_MAX), q)  # sampled visibility converges slowly
             factor = q / (1 - q)
-            est = torch.where(changed, delta * factor, torch.maximum(est, delta))
-            prev_delta = torch.where(changed, delta, prev_delta)
+            est = torch.where(touched, delta * factor, torch.maximum(est, delta))
+            prev_delta = torch.where(touched, delta, prev_delta)
         disc = _rms(est)
         history.append({"leaves": leaves.scene.num_facets, "estimate": disc, "seconds": time.perf_counter() - t_start})
         bar.set_postfix(facets=leaves.scene.num_facets, estimate=f"{disc:.2g}")
@@ -553,7 +553,7 @@ def plan(
         touched = torch.zeros(F, dtype=torch.bool)
         touched[leaves.user[sel].cpu()] = True
         prev_user = user_vals
-        leaves, _ = _split(leaves, sel)
+        leaves = _split(leaves, sel)
         it += 1
     bar.close()
 
