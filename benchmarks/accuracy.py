@@ -82,7 +82,7 @@ QUICK_ACC = [1e-2, 3e-3]
 def _solve_fn() -> Any:
     solve = getattr(ti, "solve", None)
     if not callable(solve):
-        from torch_interreflect.solve import solve
+        from torch_interreflect.solver import solve
     return solve
 
 
@@ -94,7 +94,7 @@ def _render_fn() -> Any:
 
 
 def _accuracy_warning() -> type:
-    from torch_interreflect.accuracy import AccuracyWarning
+    from torch_interreflect.errors import AccuracyWarning
 
     return AccuracyWarning
 

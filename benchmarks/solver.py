@@ -116,9 +116,10 @@ def worker(cfg: dict) -> dict:
     """One configuration, run in a fresh process so that its memory high-water mark is its own."""
     import warnings
 
-    from torch_interreflect import FormFactors
     from torch_interreflect._solvers import Stats, get_plan, solve_columns
-    from torch_interreflect.solve import solve
+
+    from torch_interreflect import FormFactors
+    from torch_interreflect.solver import solve
 
     nf, ncol, rmax, method = cfg["F"], cfg["N"], cfg["rmax"], cfg["method"]
     torch.manual_seed(0)
@@ -231,7 +232,7 @@ def calibrate() -> None:
     import warnings
 
     from torch_interreflect import FormFactors
-    from torch_interreflect.solve import _choose_method, get_plan, solve
+    from torch_interreflect.solver import _choose_method, get_plan, solve
 
     print("| F | N | distinct K | dense ms | cg ms | cg iters | faster | auto picks |")
     print("|---|---|---|---|---|---|---|---|")

@@ -61,7 +61,7 @@ DTYPE = torch.float64
 def _solve_fn() -> Callable[..., Any]:
     solve = getattr(ti, "solve", None)
     if not callable(solve):  # before the package exports it, the submodule shadows the name
-        from torch_interreflect.solve import solve
+        from torch_interreflect.solver import solve
     return solve
 
 

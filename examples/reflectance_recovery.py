@@ -25,7 +25,7 @@ import torch
 import torch_interreflect as ti
 from torch_interreflect.inverse import estimate_reflectance
 from torch_interreflect.layers import Interreflection, RGBToSpectrum
-from torch_interreflect.solve import radiance, solve
+from torch_interreflect.solver import radiance, solve
 
 MATERIALS = {
     "floor": "neutral 8",

@@ -26,7 +26,7 @@ import torch_interreflect as ti
 from torch_interreflect.camera import project, to_srgb, white_balance
 from torch_interreflect.inverse import remove_interreflections
 from torch_interreflect.layers import RGBToSpectrum
-from torch_interreflect.solve import radiance, solve
+from torch_interreflect.solver import radiance, solve
 
 
 def _save(path: Path, image: torch.Tensor) -> None:

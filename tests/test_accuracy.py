@@ -11,8 +11,8 @@ import pytest
 import torch
 
 import torch_interreflect as ti
-from torch_interreflect.accuracy import AccuracyWarning, plan
-from torch_interreflect.errors import ShapeError, ValueRangeError
+from torch_interreflect.accuracy import plan
+from torch_interreflect.errors import AccuracyWarning, ShapeError, ValueRangeError
 
 D = torch.float64
 ONE = torch.ones(1, dtype=D)

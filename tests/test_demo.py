@@ -2,7 +2,7 @@ import json
 
 import torch_interreflect as ti
 from torch_interreflect.cli import main
-from torch_interreflect.demo import DemoConfig, run_demo
+from torch_interreflect.cli.demo import DemoConfig, run_demo
 
 
 def test_demo_writes_its_outputs_and_the_numbers_make_sense(tmp_path):

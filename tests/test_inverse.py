@@ -17,7 +17,7 @@ from torch_interreflect.inverse import (
     remove_interreflections,
 )
 from torch_interreflect.layers import Interreflection, ReflectanceBasis, RGBToSpectrum
-from torch_interreflect.solve import radiance, solve
+from torch_interreflect.solver import radiance, solve
 
 DTYPES = [torch.float32, torch.float64]
 #: tolerance on recovered reflectance / radiance of the exact (closed-form) tools

@@ -10,22 +10,18 @@ import pytest
 import torch
 
 import torch_interreflect as ti
+from torch_interreflect.camera import facet_rgb
 from torch_interreflect.errors import ShapeError, ValueRangeError
-from torch_interreflect.layers import (
-    IlluminantBasis,
-    Interreflection,
-    ReflectanceBasis,
-    RGBToSpectrum,
+from torch_interreflect.layers import IlluminantBasis, Interreflection, ReflectanceBasis, RGBToSpectrum
+from torch_interreflect.lights import light_geometry
+from torch_interreflect.spectral.illuminants import (
     cct_to_daylight_coefficients,
     daylight,
     daylight_basis,
     daylight_from_cct,
-    light_geometry,
     planck,
-    reflectance_from_coefficients,
-    render,
-    rgb_to_spectrum,
 )
+from torch_interreflect.spectral.reflectances import reflectance_from_coefficients, rgb_to_spectrum
 
 DTYPES = [torch.float32, torch.float64]
 RTOL = {torch.float32: 1e-5, torch.float64: 1e-12}
@@ -153,7 +149,7 @@ def test_interreflection_module_equals_functional(groove, dtype):
     spd = torch.stack([ti.spectral.illuminant("D65", wl), ti.spectral.illuminant("A", wl)])
     E0 = ti.lights.directional(scene, torch.tensor([0.2, 0.0, -1.0]), spd).to(dtype)
     cam = ti.Camera.from_colour("Nikon 5100 (NPL)", wl)
-    expected = render(ff.to(dtype), r, E0, cam)
+    expected = facet_rgb(ff.to(dtype), r, E0, cam)
     got = layer(r, spd)
     assert got.shape == (2, 8, 3) and got.dtype == dtype
     torch.testing.assert_close(got, expected, rtol=RTOL[dtype] * 10, atol=0.0)

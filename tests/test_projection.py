@@ -23,7 +23,7 @@ from torch_interreflect.camera import (
     white_balance,
 )
 from torch_interreflect.errors import ShapeError, ValueRangeError
-from torch_interreflect.scenes import grid_quads
+from torch_interreflect.geometry.scenes import grid_quads
 
 DTYPES = [torch.float32, torch.float64]
 

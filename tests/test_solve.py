@@ -10,7 +10,7 @@ import torch
 
 from torch_interreflect import FormFactors
 from torch_interreflect.errors import ConvergenceWarning, ShapeError, SingularSystemError, ValueRangeError
-from torch_interreflect.solve import SolveInfo, radiance, solve
+from torch_interreflect.solver import SolveInfo, radiance, solve
 
 F64 = torch.float64
 METHODS = ["dense", "cg", "neumann"]

@@ -9,7 +9,7 @@ import torch
 from torch.autograd import gradcheck, gradgradcheck
 
 from torch_interreflect import FormFactors
-from torch_interreflect.solve import solve
+from torch_interreflect.solver import solve
 
 F64 = torch.float64
 METHODS = ["dense", "cg", "neumann"]

@@ -1,6 +1,8 @@
 """torch_interreflect: exact, differentiable, spectral infinite-bounce interreflection for PyTorch.
 
-Data flows one way: scene → form factors → (with light and reflectance) solve → radiance → camera → image.
+Data flows one way, one folder (or file) per stage: ``geometry`` (scenes) → ``formfactors`` → ``lights`` and
+``spectral`` (``E0``) → ``solver`` → ``camera`` (sensor RGB, images) → ``accuracy`` (``render``); ``layers``
+(nn.Modules), ``inverse``, ``training`` and ``cli`` stand on them. ``training`` is imported on first use.
 
 Example:
     >>> import torch, torch_interreflect as ti
@@ -10,15 +12,17 @@ Example:
     32
 """
 
-from . import accuracy, camera, errors, imaging, inverse, layers, lights, raycast, scenes, spectral, training
+import importlib
+from typing import Any
+
+from . import accuracy, camera, errors, formfactors, geometry, inverse, layers, lights, solver, spectral
+from ._deprecation import moved_attribute
 from ._version import __version__
 from .accuracy import AccuracyReport, RenderResult, render
 from .camera import Camera, spectral_to_rgb
-from .formfactors import form_factors
-from .hierarchical import HierarchicalFormFactors, hierarchical_form_factors
-from .kernel import FormFactors
-from .scene import Scene
-from .solve import radiance, solve
+from .formfactors import FormFactors, HierarchicalFormFactors, form_factors, hierarchical_form_factors
+from .geometry import Scene, scenes
+from .solver import SolveInfo, radiance, solve
 
 __all__ = [
     "AccuracyReport",
@@ -27,22 +31,36 @@ __all__ = [
     "HierarchicalFormFactors",
     "RenderResult",
     "Scene",
+    "SolveInfo",
     "__version__",
     "accuracy",
     "camera",
     "errors",
     "form_factors",
+    "formfactors",
+    "geometry",
     "hierarchical_form_factors",
-    "imaging",
     "inverse",
     "layers",
     "lights",
     "radiance",
-    "raycast",
     "render",
     "scenes",
     "solve",
+    "solver",
     "spectral",
     "spectral_to_rgb",
     "training",
 ]
+
+#: Modules of earlier releases that moved: ``ti.imaging`` and ``ti.raycast`` still resolve, with a warning.
+_MOVED = {
+    "imaging": ("torch_interreflect", "camera"),
+    "raycast": ("torch_interreflect.geometry", "raycast"),
+}
+
+
+def __getattr__(name: str) -> Any:
+    if name == "training":  # heavy (datasets, models): imported on first use
+        return importlib.import_module(".training", __name__)
+    return moved_attribute(__name__, name, _MOVED)

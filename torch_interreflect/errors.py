@@ -7,7 +7,9 @@ expected and what came, so ``except ValueError`` keeps working for callers that 
 from __future__ import annotations
 
 __all__ = [
+    "AccuracyWarning",
     "ConvergenceWarning",
+    "DeviceError",
     "GeometryError",
     "ShapeError",
     "SingularSystemError",
@@ -38,3 +40,11 @@ class SingularSystemError(ValueError):
 
 class ConvergenceWarning(RuntimeWarning):
     """An iterative method stopped at ``max_iter`` before reaching the requested tolerance."""
+
+
+class AccuracyWarning(UserWarning):
+    """The requested accuracy was not reached within the limits (``max_facets``, ``max_iterations``)."""
+
+
+class DeviceError(ValueError):
+    """Tensors that must share a device do not (nothing is moved between devices silently)."""

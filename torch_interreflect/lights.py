@@ -3,21 +3,36 @@
 Irradiance is in W·m⁻²·nm⁻¹; spectra are on the caller's wavelength grid (last dimension ``L``). The results
 are differentiable with respect to the spectra (and, for :func:`directional`, the direction through the
 cosine factor; the lit fraction from ray casting is a constant of the geometry).
+
+How :func:`light_geometry` turns a light into ``E0`` (the ``light=`` argument of the layer and of ``render``):
+``E0[..., i, λ] = g_i · S[..., λ]`` with a
+geometric factor ``g [F]`` computed once at construction (DESIGN.md §3):
+
+- ``"uniform"`` (default): ``g_i = 1``, the paper's homogeneous light; ``S`` is the irradiance every facet gets.
+- a direction ``[3]`` (the direction the light travels): ``g_i = max(0, n_i·(−d)) · lit_i`` with cast shadows
+  (:func:`torch_interreflect.lights.directional`); ``S`` is the irradiance on a plane facing the light.
+- ``"sky"``: ``g_i = π (1 − Σ_j F_ij)`` (:func:`torch_interreflect.lights.sky`); ``S`` is the sky radiance.
+- a material name (e.g. ``"light"`` of the Cornell box) or a boolean mask ``[F]``: an area light, the listed
+  facets emit exitance ``M = π S`` (radiance ``S``) toward the others: ``g_i = π Σ_{j ∈ light} F_ij`` (the
+  irradiance a diffuse emitter produces, by reciprocity). The emitters' own emission is not part of the rendered
+  radiance ``R E / π`` (add it for display if wanted).
+- a tensor ``[F]``: ``g`` itself.
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from typing import Literal
 
 import torch
 from torch import Tensor
 
 from .errors import ShapeError, ValueRangeError
-from .kernel import FormFactors
-from .scene import Scene
+from .formfactors.operator import FormFactors
+from .geometry.scene import Scene
 
-__all__ = ["back_coverage", "directional", "lit_fraction", "sky", "uniform"]
+__all__ = ["back_coverage", "directional", "light_geometry", "lit_fraction", "sky", "uniform"]
 
 
 def _check_spd(spd: Tensor, name: str) -> Tensor:
@@ -60,18 +75,18 @@ def lit_fraction(
     frac = (cos > 0).to(torch.float64)
     if shadows is False:
         return frac.to(scene.dtype).to(scene.device)
-    from .formfactors import _bilinear, _facing_others
+    from .geometry._polygon import bilinear, facing_others
 
     lit = cos > 0
     if shadows == "auto":
-        lit = lit & _facing_others(scene).any(1)
+        lit = lit & facing_others(scene).any(1)
     idx = torch.nonzero(lit).reshape(-1)
     if idx.numel():
-        from .raycast import RayCaster
+        from .geometry.raycast import RayCaster
 
         n = int(samples)
         g = (torch.arange(n, dtype=torch.float64) + 0.5) / n
-        x, jac = _bilinear(sc.corners[idx], g.repeat_interleave(n), g.repeat(n))
+        x, jac = bilinear(sc.corners[idx], g.repeat_interleave(n), g.repeat(n))
         caster = RayCaster(sc)
         hit = caster.first_hit(x.reshape(-1, 3).numpy(), (-d).expand(x.shape[0] * x.shape[1], 3).numpy())
         free = torch.from_numpy(hit < 0).reshape(jac.shape).to(torch.float64)
@@ -196,13 +211,13 @@ def back_coverage(
     Returns:
         ``b [F]`` in [0, 1], float64 on the CPU.
     """
-    from .formfactors import _facing_others
+    from .geometry._polygon import facing_others
 
     sc = scene.to(torch.float64).to("cpu")
     F = sc.num_facets
     b = torch.zeros(F, dtype=torch.float64)
     if only_where_possible:
-        front = _facing_others(scene)
+        front = facing_others(scene)
         idx = torch.nonzero((front & ~front.T).any(1)).reshape(-1)
     else:
         idx = torch.arange(F)
@@ -218,8 +233,8 @@ def _hemisphere_fractions(sc: Scene, idx: Tensor, *, samples: int, points: int) 
     Jittered stratified cosine-weighted directions (``samples²``) from ``points²`` jittered points per facet,
     area weighted. ``sc`` is a float64 CPU scene. Returns two float64 tensors ``[len(idx)]``.
     """
-    from .formfactors import _bilinear, _tangent_frame
-    from .raycast import RayCaster
+    from .geometry._polygon import bilinear, tangent_frame
+    from .geometry.raycast import RayCaster
 
     n = int(samples)
     # jittered stratification of the unit square (fixed seed: reproducible, and unbiased where the midpoint
@@ -231,7 +246,7 @@ def _hemisphere_fractions(sc: Scene, idx: Tensor, *, samples: int, points: int) 
     rad, ang = r1.sqrt(), 2 * math.pi * r2
     local = torch.stack([rad * ang.cos(), rad * ang.sin(), (1 - r1).clamp_min(0).sqrt()], dim=-1)  # [D, 3]
     normals = sc.normals[idx]
-    t1, t2 = _tangent_frame(normals)
+    t1, t2 = tangent_frame(normals)
     lx, ly, lz = (local[None, :, c, None] for c in range(3))
     dirs = lx * t1[:, None] + ly * t2[:, None] + lz * normals[:, None]  # [k, D, 3]
     q = (torch.arange(points, dtype=torch.float64) + 0.5) / points
@@ -243,7 +258,7 @@ def _hemisphere_fractions(sc: Scene, idx: Tensor, *, samples: int, points: int) 
     per = max(1, (1 << 20) // (points * points * dirs.shape[1]))  # about a million rays at a time
     for s in range(0, idx.numel(), per):
         sl = slice(s, s + per)
-        pts, jac = _bilinear(sc.corners[idx[sl]], qu, qv)  # [k, P, 3]
+        pts, jac = bilinear(sc.corners[idx[sl]], qu, qv)  # [k, P, 3]
         o = pts[:, :, None, :].expand(-1, -1, dirs.shape[1], -1)
         d = dirs[sl, None, :, :].expand(-1, pts.shape[1], -1, -1)
         hit = torch.from_numpy(caster.first_hit(o.reshape(-1, 3).numpy(), d.reshape(-1, 3).numpy()))
@@ -264,3 +279,69 @@ def uniform(scene: Scene, spd: Tensor) -> Tensor:
     """
     spd = _check_spd(spd, "spd")
     return spd[..., None, :].expand(*spd.shape[:-1], scene.num_facets, spd.shape[-1])
+
+
+def light_geometry(
+    light: str | Tensor | Sequence[float],
+    form_factors: FormFactors,
+    scene: Scene | None = None,
+    *,
+    shadows: str | bool = "auto",
+) -> Tensor:
+    """The geometric factor ``g [F]`` of a light: ``E0[..., i, :] = g_i · spectrum`` (see the module docstring).
+
+    Args:
+        light: ``"uniform"``, ``"sky"``, a direction ``[3]``, a material name, a boolean mask ``[F]`` (area light),
+            or ``g`` itself as a floating tensor ``[F]``.
+        form_factors: The scene's form factors (``"sky"`` and area lights use them).
+        scene: The scene (directional lights and material names need it).
+        shadows: Shadow handling of directional lights (see :func:`torch_interreflect.lights.lit_fraction`).
+
+    Returns:
+        ``g`` in the form factors' dtype and device. Shape ``[F]``.
+
+    Raises:
+        ValueError: an unknown light name, or a light that needs the scene when none is given.
+        ShapeError: a tensor of the wrong size.
+
+    Example:
+        >>> import torch_interreflect as ti
+        >>> from torch_interreflect.lights import light_geometry
+        >>> scene = ti.scenes.v_groove(90.0, divisions=1)
+        >>> light_geometry([0.0, 0.0, -1.0], ti.form_factors(scene), scene).tolist()
+        [1.0, 0.0]
+    """
+    n = form_factors.num_facets
+    dtype, device = form_factors.dtype, form_factors.device
+    if isinstance(light, str):
+        if light == "uniform":
+            return torch.ones(n, dtype=dtype, device=device)
+        if light == "sky":
+            return math.pi * (1.0 - form_factors.row_sums().detach()).clamp_min(0.0)
+        if scene is None or scene.material_names is None or light not in scene.material_names:
+            names = list(scene.material_names) if scene is not None and scene.material_names else []
+            raise ValueError(
+                f"light must be 'uniform', 'sky', a direction [3], a facet mask [F], a tensor [F] or a material name "
+                f"of the scene {names}; got {light!r}"
+            )
+        mask = scene.material == scene.material_names.index(light)
+        return light_geometry(mask.to(device), form_factors, scene)
+    t = torch.as_tensor(light)
+    if t.dtype == torch.bool:
+        if t.shape != (n,):
+            raise ShapeError(f"an area-light mask must have shape [{n}] (one flag per facet); got {list(t.shape)}")
+        cols = t.to(device=device, dtype=dtype)[:, None]
+        return math.pi * form_factors.matmul(cols).reshape(n).detach()
+    if t.numel() == 3 and t.ndim == 1 and n != 3:
+        if scene is None:
+            raise ValueError("a directional light needs the scene (for normals and shadows); pass a Scene")
+        e0 = directional(scene, t.to(torch.float64), torch.ones(1, dtype=torch.float64), shadows=shadows)
+        return e0[:, 0].to(device=device, dtype=dtype)
+    if not t.is_floating_point() or t.shape != (n,):
+        raise ShapeError(
+            f"light as a tensor must be a direction [3] or a geometric factor / mask [F = {n}]; got "
+            f"{list(t.shape)} ({t.dtype})"
+        )
+    if not bool(torch.isfinite(t).all()) or bool((t < 0).any()):
+        raise ValueRangeError("a geometric light factor [F] must be finite and non-negative")
+    return t.detach().to(device=device, dtype=dtype)

@@ -1,50 +1,42 @@
-"""``nn.Module``\\ s over the functional API (kornia style: each function has a thin module beside it).
+"""``nn.Module``\\ s only: thin holders of parameters over the functions of the pipeline (kornia style).
 
-- :class:`Interreflection` / :func:`render`: reflectance + illuminant → camera RGB (→ images).
-- :class:`IlluminantBasis` / :func:`daylight`, :func:`daylight_from_cct`, :func:`planck`: illuminants from a
-  few parameters (CIE daylight by M1, M2 or CCT; blackbody by temperature).
-- :class:`ReflectanceBasis` / :func:`reflectance_from_coefficients`: a PCA basis of measured reflectances.
-- :class:`RGBToSpectrum` / :func:`rgb_to_spectrum`: Mallett & Yuksel (2019) RGB → reflectance upsampling.
+- :class:`Interreflection`: reflectance + illuminant → camera RGB (→ images); the function is
+  :func:`torch_interreflect.camera.facet_rgb`.
+- :class:`IlluminantBasis`: illuminants from a few parameters (functions in
+  :mod:`torch_interreflect.spectral.illuminants`).
+- :class:`ReflectanceBasis`, :class:`RGBToSpectrum`: reflectance bases (functions in
+  :mod:`torch_interreflect.spectral.reflectances`).
+
+The functions that used to be importable from here still are, for one release, with a ``DeprecationWarning``
+that names their new home (see CHANGELOG.md).
 """
 
-from .illuminant import (
-    CCT_RANGE,
-    IlluminantBasis,
-    cct_to_daylight_coefficients,
-    daylight,
-    daylight_basis,
-    daylight_from_cct,
-    planck,
-)
-from .interreflection import Interreflection, light_geometry, render
-from .reflectance import (
-    ReflectanceBasis,
-    RGBToSpectrum,
-    coefficients_from_reflectance,
-    fit_reflectance_basis,
-    mallett2019_basis,
-    reflectance_data,
-    reflectance_from_coefficients,
-    rgb_to_spectrum,
-)
+from typing import Any
 
-__all__ = [
-    "CCT_RANGE",
-    "IlluminantBasis",
-    "Interreflection",
-    "RGBToSpectrum",
-    "ReflectanceBasis",
-    "cct_to_daylight_coefficients",
-    "coefficients_from_reflectance",
-    "daylight",
-    "daylight_basis",
-    "daylight_from_cct",
-    "fit_reflectance_basis",
-    "light_geometry",
-    "mallett2019_basis",
-    "planck",
-    "reflectance_data",
-    "reflectance_from_coefficients",
-    "render",
-    "rgb_to_spectrum",
-]
+from .._deprecation import moved_attribute
+from .illuminant import IlluminantBasis
+from .interreflection import Interreflection
+from .reflectance import ReflectanceBasis, RGBToSpectrum
+
+__all__ = ["IlluminantBasis", "Interreflection", "RGBToSpectrum", "ReflectanceBasis"]
+
+_MOVED = {
+    "CCT_RANGE": "torch_interreflect.spectral.illuminants",
+    "cct_to_daylight_coefficients": "torch_interreflect.spectral.illuminants",
+    "daylight": "torch_interreflect.spectral.illuminants",
+    "daylight_basis": "torch_interreflect.spectral.illuminants",
+    "daylight_from_cct": "torch_interreflect.spectral.illuminants",
+    "planck": "torch_interreflect.spectral.illuminants",
+    "coefficients_from_reflectance": "torch_interreflect.spectral.reflectances",
+    "fit_reflectance_basis": "torch_interreflect.spectral.reflectances",
+    "mallett2019_basis": "torch_interreflect.spectral.reflectances",
+    "reflectance_data": "torch_interreflect.spectral.reflectances",
+    "reflectance_from_coefficients": "torch_interreflect.spectral.reflectances",
+    "rgb_to_spectrum": "torch_interreflect.spectral.reflectances",
+    "light_geometry": "torch_interreflect.lights",
+    "render": ("torch_interreflect.camera.facet_rgb", "facet_rgb"),
+}
+
+
+def __getattr__(name: str) -> Any:
+    return moved_attribute(__name__, name, _MOVED)

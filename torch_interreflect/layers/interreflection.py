@@ -1,26 +1,15 @@
 """The interreflection layer: reflectance and illuminant in, camera RGB (and images) out.
 
-:func:`render` is the functional form: ``E0 = geometry ⊗ spectrum`` (or a given ``E0``), ``E = solve(F, R, E0)``,
+The functional form is :func:`torch_interreflect.camera.facet_rgb`: ``E0 = geometry ⊗ spectrum`` (or a given
+``E0``), ``E = solve(F, R, E0)``,
 ``L = R E / π``, ``rgb = camera(L)``. :class:`Interreflection` holds the form factors, the light's geometric
 factor, the camera and optionally a projection and a reflectance parametrisation, all as buffers or submodules.
 
-How an illuminant spectrum becomes ``E0`` (the ``light=`` argument): ``E0[..., i, λ] = g_i · S[..., λ]`` with a
-geometric factor ``g [F]`` computed once at construction (DESIGN.md §3):
-
-- ``"uniform"`` (default): ``g_i = 1``, the paper's homogeneous light; ``S`` is the irradiance every facet gets.
-- a direction ``[3]`` (the direction the light travels): ``g_i = max(0, n_i·(−d)) · lit_i`` with cast shadows
-  (:func:`torch_interreflect.lights.directional`); ``S`` is the irradiance on a plane facing the light.
-- ``"sky"``: ``g_i = π (1 − Σ_j F_ij)`` (:func:`torch_interreflect.lights.sky`); ``S`` is the sky radiance.
-- a material name (e.g. ``"light"`` of the Cornell box) or a boolean mask ``[F]``: an area light, the listed
-  facets emit exitance ``M = π S`` (radiance ``S``) toward the others: ``g_i = π Σ_{j ∈ light} F_ij`` (the
-  irradiance a diffuse emitter produces, by reciprocity). The emitters' own emission is not part of the rendered
-  radiance ``R E / π`` (add it for display if wanted).
-- a tensor ``[F]``: ``g`` itself.
+How a light and a spectrum become ``E0``: :func:`torch_interreflect.lights.light_geometry`.
 """
 
 from __future__ import annotations
 
-import math
 import warnings
 from collections.abc import Sequence
 from typing import Any
@@ -29,122 +18,16 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
-from .. import lights, spectral
-from ..camera import Camera
-from ..errors import ShapeError, ValueRangeError
-from ..formfactors import form_factors as _compute_form_factors
-from ..kernel import FormFactors
-from ..scene import Scene, area_average
-from ..solve import radiance as _radiance
-from ..solve import solve as _solve
+from .. import spectral
+from ..camera.facet_rgb import facet_rgb
+from ..camera.sensor import Camera
+from ..errors import ShapeError
+from ..formfactors.operator import FormFactors
+from ..formfactors.quadrature import form_factors as _compute_form_factors
+from ..geometry.scene import Scene, area_average
+from ..lights import light_geometry
 
-__all__ = ["Interreflection", "light_geometry", "render"]
-
-
-def light_geometry(
-    light: str | Tensor | Sequence[float],
-    form_factors: FormFactors,
-    scene: Scene | None = None,
-    *,
-    shadows: str | bool = "auto",
-) -> Tensor:
-    """The geometric factor ``g [F]`` of a light: ``E0[..., i, :] = g_i · spectrum`` (see the module docstring).
-
-    Args:
-        light: ``"uniform"``, ``"sky"``, a direction ``[3]``, a material name, a boolean mask ``[F]`` (area light),
-            or ``g`` itself as a floating tensor ``[F]``.
-        form_factors: The scene's form factors (``"sky"`` and area lights use them).
-        scene: The scene (directional lights and material names need it).
-        shadows: Shadow handling of directional lights (see :func:`torch_interreflect.lights.lit_fraction`).
-
-    Returns:
-        ``g`` in the form factors' dtype and device. Shape ``[F]``.
-
-    Raises:
-        ValueError: an unknown light name, or a light that needs the scene when none is given.
-        ShapeError: a tensor of the wrong size.
-
-    Example:
-        >>> import torch_interreflect as ti
-        >>> from torch_interreflect.layers import light_geometry
-        >>> scene = ti.scenes.v_groove(90.0, divisions=1)
-        >>> light_geometry([0.0, 0.0, -1.0], ti.form_factors(scene), scene).tolist()
-        [1.0, 0.0]
-    """
-    n = form_factors.num_facets
-    dtype, device = form_factors.dtype, form_factors.device
-    if isinstance(light, str):
-        if light == "uniform":
-            return torch.ones(n, dtype=dtype, device=device)
-        if light == "sky":
-            return math.pi * (1.0 - form_factors.row_sums().detach()).clamp_min(0.0)
-        if scene is None or scene.material_names is None or light not in scene.material_names:
-            names = list(scene.material_names) if scene is not None and scene.material_names else []
-            raise ValueError(
-                f"light must be 'uniform', 'sky', a direction [3], a facet mask [F], a tensor [F] or a material name "
-                f"of the scene {names}; got {light!r}"
-            )
-        mask = scene.material == scene.material_names.index(light)
-        return light_geometry(mask.to(device), form_factors, scene)
-    t = torch.as_tensor(light)
-    if t.dtype == torch.bool:
-        if t.shape != (n,):
-            raise ShapeError(f"an area-light mask must have shape [{n}] (one flag per facet); got {list(t.shape)}")
-        cols = t.to(device=device, dtype=dtype)[:, None]
-        return math.pi * form_factors.matmul(cols).reshape(n).detach()
-    if t.numel() == 3 and t.ndim == 1 and n != 3:
-        if scene is None:
-            raise ValueError("a directional light needs the scene (for normals and shadows); pass a Scene")
-        e0 = lights.directional(scene, t.to(torch.float64), torch.ones(1, dtype=torch.float64), shadows=shadows)
-        return e0[:, 0].to(device=device, dtype=dtype)
-    if not t.is_floating_point() or t.shape != (n,):
-        raise ShapeError(
-            f"light as a tensor must be a direction [3] or a geometric factor / mask [F = {n}]; got "
-            f"{list(t.shape)} ({t.dtype})"
-        )
-    if not bool(torch.isfinite(t).all()) or bool((t < 0).any()):
-        raise ValueRangeError("a geometric light factor [F] must be finite and non-negative")
-    return t.detach().to(device=device, dtype=dtype)
-
-
-def render(
-    form_factors: FormFactors,
-    reflectance: Tensor,
-    E0: Tensor,
-    camera: Camera,
-    *,
-    bounces: int | None = None,
-    tol: float = 1e-6,
-    method: str = "auto",
-) -> Tensor:
-    """Camera RGB of a scene after ``bounces`` reflections: ``camera(R · solve(F, R, E0) / π)``.
-
-    Differentiable in ``reflectance``, ``E0``, the form-factor values and the camera's sensitivities.
-
-    Args:
-        form_factors: The scene's form factors.
-        reflectance: In [0, 1]. Shape ``[..., F, L]`` (or ``[..., F]`` grey).
-        E0: Direct irradiance in W·m⁻²·nm⁻¹. Shape ``[..., F, L]`` broadcastable with the reflectance.
-        camera: The camera (its grid must have ``L`` wavelengths).
-        bounces: ``None`` (infinite) or ``n ≥ 1`` (see :func:`torch_interreflect.solve.solve`).
-        tol: Solver tolerance.
-        method: Solver method.
-
-    Returns:
-        Camera responses. Shape ``[..., F, C]``.
-
-    Example:
-        >>> import torch_interreflect as ti
-        >>> from torch_interreflect.layers import render
-        >>> scene = ti.scenes.v_groove(60.0, divisions=2)
-        >>> wl = ti.spectral.wavelengths()
-        >>> rgb = render(ti.form_factors(scene), torch.full((8, 31), 0.5), torch.ones(8, 31),
-        ...              ti.Camera.from_colour("Nikon 5100 (NPL)", wl))
-        >>> rgb.shape
-        torch.Size([8, 3])
-    """
-    E = _solve(form_factors, reflectance, E0, bounces=bounces, tol=tol, method=method)
-    return camera(_radiance(E, reflectance))
+__all__ = ["Interreflection"]
 
 
 class Interreflection(nn.Module):
@@ -154,7 +37,7 @@ class Interreflection(nn.Module):
     index and (through submodules) the camera sensitivities, a :class:`~torch_interreflect.imaging.Projection` and
     a reflectance parametrisation are buffers, so ``.to(device, dtype)`` moves everything. Gradients reach the
     reflectance (or its parameters), the illuminant spectrum or ``E0``, and the camera sensitivities, by the
-    adjoint of :func:`~torch_interreflect.solve.solve`.
+    adjoint of :func:`~torch_interreflect.solve`.
 
     Args:
         scene_or_form_factors: A :class:`~torch_interreflect.Scene` (its form factors are computed with default
@@ -172,7 +55,7 @@ class Interreflection(nn.Module):
             ``[..., 3]``) to reflectance ``[..., L]`` (:class:`ReflectanceBasis`, :class:`RGBToSpectrum`, ...).
         per_material: The reflectance input is per material ``[..., M, ·]`` and is expanded to facets with the
             scene's material index.
-        tol: Solver tolerance. method: Solver method (see :func:`~torch_interreflect.solve.solve`).
+        tol: Solver tolerance. method: Solver method (see :func:`~torch_interreflect.solve`).
         shadows: Shadows of a directional light.
         accuracy: Target relative RMS error of the camera RGB per facet (see :func:`torch_interreflect.render`).
             The scene is then refined once, at construction, by :func:`torch_interreflect.accuracy.plan` for
@@ -253,7 +136,7 @@ class Interreflection(nn.Module):
         if accuracy is not None:
             if scene is None or ff is not None:
                 raise ValueError("accuracy= needs the layer to be built from a Scene (it refines the scene itself)")
-            from ..accuracy import plan as _plan
+            from ..accuracy.render import plan as _plan
 
             n_user = scene.num_facets
             pr = plan_reflectance if plan_reflectance is not None else torch.full((n_user,), 0.9, dtype=scene.dtype)
@@ -396,7 +279,7 @@ class Interreflection(nn.Module):
             r = r.index_select(-2, self.leaf_user)
             if illuminant is None:
                 e0 = e0.index_select(-2, self.leaf_user)  # type: ignore[union-attr]
-        rgb = render(self.form_factors, r, e0, self.camera, bounces=self.bounces, tol=self.tol, method=self.method)
+        rgb = facet_rgb(self.form_factors, r, e0, self.camera, bounces=self.bounces, tol=self.tol, method=self.method)
         if self.leaf_user is not None:
             rgb = area_average(rgb, self.leaf_user, self.areas, self.num_facets)
         if self.projection is None:

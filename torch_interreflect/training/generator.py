@@ -44,10 +44,10 @@ from torch import Tensor
 
 from .. import spectral
 from .._version import __version__
-from ..camera import Camera
+from ..camera.sensor import Camera
 from ..errors import SpectralDataError
-from ..formfactors import form_factors
-from ..solve import radiance, solve
+from ..formfactors.quadrature import form_factors
+from ..solver.api import radiance, solve
 from .pngio import encode_png16
 from .random_scenes import (
     ILLUMINANT_KINDS,
@@ -241,7 +241,7 @@ def render_sample(config: GeneratorConfig, index: int) -> Sample:
     Returns:
         The :class:`Sample`: images ``[H, W, 3]`` float32 per variant, sidecar metadata and geometry arrays.
     """
-    from ..imaging import project
+    from ..camera.projection import project
 
     res = _resources(config.wavelengths, config.camera, config.basis_components)
     wl, cam = res["wl"], res["camera"]
@@ -399,7 +399,7 @@ def load_geometry(
     """
     import warnings
 
-    from ..kernel import FormFactors
+    from ..formfactors.operator import FormFactors
 
     z = np.load(source) if isinstance(source, (str, Path)) else source
     areas = torch.from_numpy(np.asarray(z["areas"])).to(dtype)

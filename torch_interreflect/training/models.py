@@ -25,8 +25,8 @@ import torch.nn.functional as nnf
 from torch import Tensor, nn
 
 from .. import spectral
-from ..camera import Camera
-from ..solve import radiance, solve
+from ..camera.sensor import Camera
+from ..solver.api import radiance, solve
 from .metrics import angular_error
 
 __all__ = ["FC4Net", "PhysicsInformedNet", "physics_loss", "preprocess"]

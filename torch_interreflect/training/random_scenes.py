@@ -28,8 +28,8 @@ from torch import Tensor
 
 from .. import spectral
 from ..errors import SpectralDataError
-from ..scene import Scene
-from ..scenes import box_corner, grid_quads, v_groove, w_shape
+from ..geometry.scene import Scene
+from ..geometry.scenes import box_corner, grid_quads, v_groove, w_shape
 
 __all__ = [
     "ILLUMINANT_KINDS",

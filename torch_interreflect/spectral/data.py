@@ -1,4 +1,4 @@
-"""Wavelength grids and spectral data: illuminants, ColorChecker reflectances, camera sensitivities.
+"""Spectral data: illuminants, ColorChecker reflectances, camera sensitivities.
 
 All data come from `colour-science <https://www.colour-science.org>`_ and are sampled at the wavelengths
 you pass, uniform or not. The sampling never touches colour's shared dataset objects: every spectral
@@ -29,14 +29,14 @@ import functools
 import math
 import numbers
 import re
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from typing import Any, Literal
 
 import numpy as np
-import torch
 from torch import Tensor
 
-from .errors import ShapeError, SpectralDataError, ValueRangeError
+from ..errors import SpectralDataError, ValueRangeError
+from .grid import cached_on_grid
 
 __all__ = [
     "CAMERA_NAMES",
@@ -44,13 +44,11 @@ __all__ = [
     "REFLECTANCE_ALIASES",
     "blackbody",
     "camera_sensitivities",
-    "check_wavelengths",
     "colorchecker",
     "illuminant",
     "illuminant_names",
-    "integration_weights",
     "reflectance",
-    "wavelengths",
+    "sample_spd",
 ]
 
 #: The ColorChecker data set of colour-science that :func:`colorchecker` and :func:`reflectance` use.
@@ -86,152 +84,6 @@ _RANGE_ATOL = 1e-6
 # ---------------------------------------------------------------------------------------------------------
 
 
-def wavelengths(
-    start: float = 400.0,
-    stop: float = 700.0,
-    step: float = 10.0,
-    *,
-    dtype: torch.dtype | None = None,
-    device: torch.device | str | None = None,
-) -> Tensor:
-    """A uniform wavelength grid from ``start`` to ``stop`` (inclusive when it falls on the grid), in nm.
-
-    The default is the paper's grid, 400–700 nm in 10 nm steps (31 samples). Any strictly increasing 1-D
-    tensor of wavelengths works wherever a grid is expected, non-uniform ones included.
-
-    Args:
-        start: First wavelength in nm (> 0).
-        stop: Last wavelength in nm (>= ``start``); included when ``stop - start`` is a multiple of
-            ``step`` (to 1e-9 relative), else the grid ends at the last sample below it.
-        step: Spacing in nm (> 0).
-        dtype: Floating dtype of the result (default: ``torch.get_default_dtype()``).
-        device: Device of the result (default: CPU).
-
-    Returns:
-        The grid. Shape ``[L]``, ``L = floor((stop - start) / step) + 1``.
-
-    Raises:
-        ValueRangeError: non-finite or non-positive ``start``/``step``, or ``stop < start``.
-
-    Example:
-        >>> from torch_interreflect import spectral
-        >>> wl = spectral.wavelengths()
-        >>> wl.shape, float(wl[0]), float(wl[-1])
-        (torch.Size([31]), 400.0, 700.0)
-    """
-    for label, v in (("start", start), ("stop", stop), ("step", step)):
-        if not math.isfinite(float(v)):
-            raise ValueRangeError(f"wavelengths: {label} must be finite; got {v}")
-    if start <= 0:
-        raise ValueRangeError(f"wavelengths: start must be > 0 nm; got {start}")
-    if step <= 0:
-        raise ValueRangeError(f"wavelengths: step must be > 0 nm; got {step}")
-    if stop < start:
-        raise ValueRangeError(f"wavelengths: stop must be >= start; got start={start}, stop={stop}")
-    n = math.floor((stop - start) / step * (1 + 1e-9) + 1e-9) + 1
-    grid = float(start) + float(step) * torch.arange(n, dtype=torch.float64)
-    return grid.to(dtype=dtype or torch.get_default_dtype(), device=device)
-
-
-def _grid_dtype_device(wl: Any) -> tuple[torch.dtype, torch.device]:
-    if isinstance(wl, Tensor):
-        dtype = wl.dtype if wl.is_floating_point() else torch.get_default_dtype()
-        return dtype, wl.device
-    return torch.get_default_dtype(), torch.device("cpu")
-
-
-def _grid_numpy(wl: Any, name: str = "wavelengths") -> np.ndarray:
-    """Validate a wavelength grid and return it as a float64 numpy array."""
-    if isinstance(wl, Tensor):
-        if wl.is_complex():
-            raise TypeError(f"{name} must be real; got dtype {wl.dtype}")
-        arr = wl.detach().to("cpu", torch.float64).numpy()
-    else:
-        try:
-            arr = np.asarray(wl, dtype=np.float64)
-        except (TypeError, ValueError) as exc:
-            raise TypeError(
-                f"{name} must be a 1-D tensor or sequence of numbers; got {type(wl).__name__}"
-            ) from exc
-    if arr.ndim != 1:
-        raise ShapeError(f"{name} must be 1-D [L]; got shape {list(arr.shape)}")
-    if arr.size == 0:
-        raise ShapeError(f"{name} must hold at least one wavelength; got an empty grid")
-    bad = ~np.isfinite(arr)
-    if bad.any():
-        i = int(np.flatnonzero(bad)[0])
-        raise ValueRangeError(f"{name} must be finite; got {arr[i]} at index {i}")
-    if arr[0] <= 0:
-        raise ValueRangeError(f"{name} must be positive (nm); got {arr[0]} at index 0")
-    if arr.size > 1:
-        d = np.diff(arr)
-        if (d <= 0).any():
-            i = int(np.flatnonzero(d <= 0)[0])
-            raise ValueRangeError(
-                f"{name} must be strictly increasing; got {arr[i]} then {arr[i + 1]} at indices {i}, {i + 1}"
-            )
-    return arr
-
-
-def check_wavelengths(wavelengths: Tensor | Sequence[float] | np.ndarray, *, min_samples: int = 1) -> Tensor:
-    """Validate a wavelength grid and return it as a floating tensor.
-
-    Args:
-        wavelengths: Wavelengths in nm, strictly increasing, finite and positive. Shape ``[L]``.
-        min_samples: Smallest admissible ``L``.
-
-    Returns:
-        The grid as a tensor (the input itself when it is already a floating tensor; integer tensors are
-        converted to the default dtype on their device). Shape ``[L]``.
-
-    Raises:
-        ShapeError: not 1-D, or fewer than ``min_samples`` samples.
-        ValueRangeError: non-finite, non-positive or not strictly increasing values.
-
-    Example:
-        >>> from torch_interreflect import spectral
-        >>> spectral.check_wavelengths([400, 550, 700]).dtype == torch.get_default_dtype()
-        True
-    """
-    arr = _grid_numpy(wavelengths)
-    if arr.size < min_samples:
-        raise ShapeError(f"wavelengths must hold at least {min_samples} samples; got {arr.size}")
-    if isinstance(wavelengths, Tensor) and wavelengths.is_floating_point():
-        return wavelengths
-    dtype, device = _grid_dtype_device(wavelengths)
-    return torch.as_tensor(arr, dtype=dtype, device=device)
-
-
-def integration_weights(wavelengths: Tensor) -> Tensor:
-    """Per-sample widths Δλ (nm) for the Riemann sum ``Σ_λ f(λ) Δλ`` of the camera model (eq. 61).
-
-    Each sample gets the width of its cell, the interval between the midpoints to its neighbours:
-    ``Δλ_i = (λ_{i+1} − λ_{i−1}) / 2``, with the end cells taken symmetric about the end samples
-    (``Δλ_0 = λ_1 − λ_0``, ``Δλ_{L−1} = λ_{L−1} − λ_{L−2}``). On a uniform grid every weight equals the
-    step, which is the plain sum of the paper and of colour-science's ``sd_to_XYZ(method="Integration")``;
-    on a non-uniform grid it is the midpoint rule over cells. The weights sum to
-    ``λ_{L−1} − λ_0 + (Δλ_0 + Δλ_{L−1}) / 2``.
-
-    Args:
-        wavelengths: Strictly increasing wavelengths in nm. Shape ``[L]``, ``L >= 2``.
-
-    Returns:
-        The widths in nm, on the dtype and device of ``wavelengths``. Shape ``[L]``.
-
-    Raises:
-        ShapeError: not 1-D or fewer than 2 samples.
-        ValueRangeError: non-finite, non-positive or not strictly increasing wavelengths.
-
-    Example:
-        >>> from torch_interreflect import spectral
-        >>> spectral.integration_weights(torch.tensor([400.0, 410.0, 430.0, 440.0])).tolist()
-        [10.0, 15.0, 15.0, 10.0]
-    """
-    wl = check_wavelengths(wavelengths, min_samples=2)
-    d = wl[1:] - wl[:-1]
-    return torch.cat([d[:1], 0.5 * (d[1:] + d[:-1]), d[-1:]])
-
-
 # ---------------------------------------------------------------------------------------------------------
 # Name lookup and sampling helpers
 # ---------------------------------------------------------------------------------------------------------
@@ -259,7 +111,7 @@ def _check_extrapolate(extrapolate: Any) -> None:
         raise ValueRangeError(f"extrapolate must be one of {_EXTRAPOLATE}; got {extrapolate!r}")
 
 
-def _sample(data: Any, grid: np.ndarray, extrapolate: str, label: str) -> np.ndarray:
+def sample_spd(data: Any, grid: np.ndarray, extrapolate: str, label: str) -> np.ndarray:
     """Evaluate a colour (multi-)spectral distribution at ``grid`` on a copy, with explicit range handling.
 
     Returns ``[L]`` for a spectral distribution, ``[L, C]`` for a multi-spectral one.
@@ -285,16 +137,6 @@ def _frozen(a: np.ndarray) -> np.ndarray:
     a = np.ascontiguousarray(a, dtype=np.float64)
     a.setflags(write=False)
     return a
-
-
-def _to_tensor(arr: np.ndarray, like: Any) -> Tensor:
-    dtype, device = _grid_dtype_device(like)
-    return torch.tensor(arr, dtype=dtype, device=device)
-
-
-def _cached_call(fn: Callable[..., np.ndarray], wavelengths: Any, *args: Any) -> Tensor:
-    grid = _grid_numpy(wavelengths)
-    return _to_tensor(fn(*args, tuple(grid.tolist())), wavelengths)
 
 
 # ---------------------------------------------------------------------------------------------------------
@@ -330,7 +172,7 @@ def _d_series_np(cct: float, grid: tuple[float, ...]) -> np.ndarray:
 
     xy = colour.temperature.CCT_to_xy_CIE_D(cct)
     sd = colour.sd_CIE_illuminant_D_series(xy)
-    return _frozen(_sample(sd, np.asarray(grid), "error", f"CIE D series at {cct:g} K"))
+    return _frozen(sample_spd(sd, np.asarray(grid), "error", f"CIE D series at {cct:g} K"))
 
 
 @functools.lru_cache(maxsize=256)
@@ -338,7 +180,7 @@ def _named_illuminant_np(name: str, extrapolate: str, grid: tuple[float, ...]) -
     import colour
 
     sd = colour.SDS_ILLUMINANTS[name]
-    return _frozen(_sample(sd, np.asarray(grid), extrapolate, f"illuminant {name!r}"))
+    return _frozen(sample_spd(sd, np.asarray(grid), extrapolate, f"illuminant {name!r}"))
 
 
 def _check_temperature(temperature: Any) -> float:
@@ -369,12 +211,13 @@ def blackbody(temperature: float, wavelengths: Tensor | Sequence[float] | np.nda
         ShapeError: grid not 1-D.
 
     Example:
+        >>> import torch
         >>> from torch_interreflect import spectral
         >>> s = spectral.blackbody(2856, torch.tensor([460.0, 560.0, 660.0], dtype=torch.float64))
         >>> round(float(s[1]), 9)
         100.0
     """
-    return _cached_call(_blackbody_np, wavelengths, _check_temperature(temperature))
+    return cached_on_grid(_blackbody_np, wavelengths, _check_temperature(temperature))
 
 
 _BLACKBODY_RE = re.compile(r"^\s*(?:blackbody|planck)\s*[:=]?\s*([0-9.eE+-]+)\s*k?\s*$", re.IGNORECASE)
@@ -421,6 +264,7 @@ def illuminant(
         ShapeError: grid not 1-D.
 
     Example:
+        >>> import torch
         >>> from torch_interreflect import spectral
         >>> wl = spectral.wavelengths()
         >>> float(spectral.illuminant("D65", wl)[16])  # 560 nm
@@ -438,7 +282,7 @@ def illuminant(
             raise ValueRangeError(
                 f"CIE D-series CCT must lie in [{lo:g}, {hi:g}] K; got {name_or_cct}"
             )
-        return _cached_call(_d_series_np, wavelengths, cct)
+        return cached_on_grid(_d_series_np, wavelengths, cct)
     if not isinstance(name_or_cct, str):
         raise TypeError(
             f"illuminant must be a name (str) or a CCT in K (number); got {type(name_or_cct).__name__}"
@@ -457,7 +301,7 @@ def illuminant(
     if fl:
         aliases[f"f{int(fl.group(1))}"] = f"FL{int(fl.group(1))}"
     name = _resolve(name_or_cct, illuminant_names(), "illuminant", aliases)
-    return _cached_call(_named_illuminant_np, wavelengths, name, extrapolate)
+    return cached_on_grid(_named_illuminant_np, wavelengths, name, extrapolate)
 
 
 # ---------------------------------------------------------------------------------------------------------
@@ -477,7 +321,7 @@ def _colorchecker_np(extrapolate: str, grid: tuple[float, ...]) -> np.ndarray:
 
     g = np.asarray(grid)
     sds = colour.SDS_COLOURCHECKERS[COLORCHECKER]
-    return _frozen(np.stack([_sample(sd, g, extrapolate, f"{COLORCHECKER} {k!r}") for k, sd in sds.items()]))
+    return _frozen(np.stack([sample_spd(sd, g, extrapolate, f"{COLORCHECKER} {k!r}") for k, sd in sds.items()]))
 
 
 def colorchecker(
@@ -501,13 +345,14 @@ def colorchecker(
         ValueRangeError, ShapeError: bad grid.
 
     Example:
+        >>> import torch
         >>> from torch_interreflect import spectral
         >>> r, names = spectral.colorchecker(spectral.wavelengths())
         >>> r.shape, names[14]
         (torch.Size([24, 31]), 'red')
     """
     _check_extrapolate(extrapolate)
-    return _cached_call(_colorchecker_np, wavelengths, extrapolate), _colorchecker_names()
+    return cached_on_grid(_colorchecker_np, wavelengths, extrapolate), _colorchecker_names()
 
 
 def reflectance(
@@ -535,6 +380,7 @@ def reflectance(
         ValueRangeError, ShapeError: bad grid.
 
     Example:
+        >>> import torch
         >>> from torch_interreflect import spectral
         >>> r = spectral.reflectance("grey", spectral.wavelengths())
         >>> 0.18 < float(r.mean()) < 0.21
@@ -545,7 +391,7 @@ def reflectance(
     aliases = dict(REFLECTANCE_ALIASES)
     aliases.update({n.split(" (")[0]: n for n in names if " (" in n})
     canonical = _resolve(name, names, "ColorChecker patch", aliases)
-    r = _cached_call(_colorchecker_np, wavelengths, extrapolate)
+    r = cached_on_grid(_colorchecker_np, wavelengths, extrapolate)
     return r[names.index(canonical)].clone()
 
 
@@ -566,7 +412,7 @@ def _sensitivities_np(name: str, extrapolate: str, grid: tuple[float, ...]) -> n
     import colour
 
     data = colour.MSDS_CAMERA_SENSITIVITIES[name] if name in CAMERA_NAMES else colour.MSDS_CMFS[name]
-    return _frozen(_sample(data, np.asarray(grid), extrapolate, f"sensitivities {name!r}").T)
+    return _frozen(sample_spd(data, np.asarray(grid), extrapolate, f"sensitivities {name!r}").T)
 
 
 def camera_sensitivities(
@@ -596,10 +442,11 @@ def camera_sensitivities(
         ValueRangeError, ShapeError: bad grid.
 
     Example:
+        >>> import torch
         >>> from torch_interreflect import spectral
         >>> spectral.camera_sensitivities("Nikon 5100 (NPL)", spectral.wavelengths()).shape
         torch.Size([3, 31])
     """
     _check_extrapolate(extrapolate)
     canonical = _resolve(name, _sensitivity_names(), "camera", _CMFS_ALIASES)
-    return _cached_call(_sensitivities_np, wavelengths, canonical, extrapolate)
+    return cached_on_grid(_sensitivities_np, wavelengths, canonical, extrapolate)

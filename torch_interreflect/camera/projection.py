@@ -1,4 +1,4 @@
-"""Facets to images: a pinhole camera, a pixel × facet coverage matrix, and image-space operations (kornia).
+"""Facets to images: a pinhole camera (kornia) and a pixel × facet coverage matrix.
 
 Ray casting happens once per geometry and camera (:func:`project`): every pixel is split into ``s × s``
 sub-pixels, one ray through each sub-pixel centre finds the first facet it hits (Embree), and the fraction of a
@@ -11,11 +11,6 @@ Camera conventions (kornia's :class:`~kornia.geometry.camera.PinholeCamera`, Ope
 right of the image, ``y`` down, ``z`` forward; pixel ``(u, v)`` (column, row) has its centre at integer
 coordinates and covers ``[u − ½, u + ½] × [v − ½, v + ½]``; :func:`look_at` puts the principal point at the image
 centre ``((W − 1)/2, (H − 1)/2)`` and uses a vertical field of view.
-
-Image operations on ``[B, 3, H, W]`` linear camera RGB, all from kornia except the white balance (a division)
-and the noise model (not in kornia): :func:`to_srgb` (``kornia.color.linear_rgb_to_rgb``), :func:`blur`
-(``kornia.filters.gaussian_blur2d``), :func:`white_balance`, :func:`add_noise` (shot and read noise),
-:func:`to_lab` and :func:`delta_e` (``kornia.color.rgb_to_lab``, CIE 1976 ΔE).
 """
 
 from __future__ import annotations
@@ -29,21 +24,10 @@ import torch
 from kornia.geometry.camera import PinholeCamera
 from torch import Tensor, nn
 
-from .errors import ShapeError, ValueRangeError
-from .scene import Scene
+from ..errors import ShapeError, ValueRangeError
+from ..geometry.scene import Scene
 
-__all__ = [
-    "Projection",
-    "add_noise",
-    "blur",
-    "delta_e",
-    "look_at",
-    "project",
-    "render_image",
-    "to_lab",
-    "to_srgb",
-    "white_balance",
-]
+__all__ = ["Projection", "look_at", "project", "render_image"]
 
 
 def _vec3(x: Tensor | Sequence[float], name: str) -> Tensor:
@@ -89,7 +73,7 @@ def look_at(
         ValueError: bad sizes or field of view.
 
     Example:
-        >>> from torch_interreflect.imaging import look_at
+        >>> from torch_interreflect.camera import look_at
         >>> cam = look_at([0, 0, -1], [0, 0, 0], 32, 48)
         >>> cam.project(torch.tensor([[0.0, 0.0, 0.0]], dtype=torch.float64)).tolist()  # image centre
         [[23.5, 15.5]]
@@ -151,7 +135,7 @@ def render_image(
         ShapeError: mismatched facet counts or pixel counts.
 
     Example:
-        >>> from torch_interreflect.imaging import render_image
+        >>> from torch_interreflect.camera import render_image
         >>> cov = torch.tensor([[1.0, 0.0], [0.5, 0.5]])      # 2 pixels (1 × 2 image), 2 facets
         >>> render_image(cov, torch.tensor([[1.0], [3.0]]), 1, 2).flatten().tolist()
         [1.0, 2.0]
@@ -330,13 +314,13 @@ def project(
 
     Example:
         >>> import torch_interreflect as ti
-        >>> from torch_interreflect.imaging import project
+        >>> from torch_interreflect.camera import project
         >>> scene = ti.scenes.v_groove(90.0, divisions=2)
         >>> proj = project(scene, ([0.03, 0.03, 0.1], [0.03, 0.03, 0.0]), 16, 16, supersample=2)
         >>> proj(torch.ones(scene.num_facets, 3)).shape
         torch.Size([1, 3, 16, 16])
     """
-    from .raycast import RayCaster
+    from ..geometry.raycast import RayCaster
 
     if not isinstance(scene, Scene):
         raise TypeError(f"scene must be a Scene; got {type(scene).__name__}")
@@ -403,160 +387,5 @@ def project(
 
 
 # ------------------------------------------------------------------------------------------ image operations
-def _check_image(image: Tensor, name: str = "image") -> None:
-    if not isinstance(image, Tensor) or image.ndim != 4 or image.shape[1] != 3:
-        raise ShapeError(f"{name} must be a tensor [B, 3, H, W]; got {getattr(image, 'shape', type(image).__name__)}")
 
 
-def to_srgb(image: Tensor, *, exposure: float | Tensor = 1.0) -> Tensor:
-    """Linear RGB → display sRGB in [0, 1]: ``linear_rgb_to_rgb(clamp(exposure · image, 0, 1))`` (kornia).
-
-    Args:
-        image: Linear RGB (e.g. white-balanced camera RGB). Shape ``[B, 3, H, W]``.
-        exposure: Multiplier applied first (e.g. ``1 / percentile``), number or ``[B, 1, 1, 1]``.
-
-    Returns:
-        sRGB-encoded image in [0, 1]. Shape ``[B, 3, H, W]``.
-
-    Example:
-        >>> from torch_interreflect.imaging import to_srgb
-        >>> round(float(to_srgb(torch.full((1, 3, 1, 1), 0.18))[0, 0]), 3)
-        0.461
-    """
-    import kornia.color
-
-    _check_image(image)
-    return kornia.color.linear_rgb_to_rgb((image * exposure).clamp(0.0, 1.0))
-
-
-def blur(image: Tensor, sigma: float, *, kernel_size: int | None = None) -> Tensor:
-    """Optical blur: a Gaussian point-spread function of ``sigma`` pixels (``kornia.filters.gaussian_blur2d``).
-
-    Args:
-        image: Shape ``[B, C, H, W]``.
-        sigma: Standard deviation in pixels (> 0).
-        kernel_size: Odd kernel size; default ``2·ceil(3σ) + 1``.
-
-    Returns:
-        Blurred image (reflect padding). Shape ``[B, C, H, W]``.
-
-    Example:
-        >>> from torch_interreflect.imaging import blur
-        >>> blur(torch.rand(1, 3, 8, 8), 1.0).shape
-        torch.Size([1, 3, 8, 8])
-    """
-    import kornia.filters
-
-    if not (isinstance(sigma, (int, float)) and sigma > 0 and math.isfinite(sigma)):
-        raise ValueRangeError(f"sigma must be a positive number of pixels; got {sigma!r}")
-    k = kernel_size if kernel_size is not None else 2 * math.ceil(3 * sigma) + 1
-    if k % 2 == 0 or k < 1:
-        raise ValueError(f"kernel_size must be a positive odd integer; got {k}")
-    return kornia.filters.gaussian_blur2d(image, (k, k), (float(sigma), float(sigma)), border_type="reflect")
-
-
-def white_balance(image: Tensor, white: Tensor) -> Tensor:
-    """Divide each channel by the camera RGB of the illuminant (von Kries), normalised to the green channel.
-
-    ``white`` is typically ``camera(illuminant_spd[None] / π)``: the response to a perfect white diffuser.
-    After balancing, a grey surface lit by that illuminant has equal channels.
-
-    Args:
-        image: Shape ``[B, 3, H, W]``.
-        white: Camera RGB of the illuminant. Shape ``[3]`` or ``[B, 3]``, positive.
-
-    Returns:
-        Balanced image. Shape ``[B, 3, H, W]``.
-
-    Raises:
-        ValueRangeError: non-positive ``white``.
-
-    Example:
-        >>> from torch_interreflect.imaging import white_balance
-        >>> img = torch.tensor([2.0, 4.0, 1.0]).reshape(1, 3, 1, 1)
-        >>> white_balance(img, torch.tensor([2.0, 4.0, 1.0])).flatten().tolist()
-        [4.0, 4.0, 4.0]
-    """
-    _check_image(image)
-    if not isinstance(white, Tensor) or white.shape[-1] != 3 or white.ndim > 2:
-        raise ShapeError(f"white must be a tensor [3] or [B, 3]; got {getattr(white, 'shape', white)}")
-    if bool((white.detach() <= 0).any()):
-        raise ValueRangeError(f"white must be positive in every channel; got {white.detach().tolist()}")
-    gain = white[..., 1:2] / white
-    return image * gain.reshape(-1, 3, 1, 1).to(image)
-
-
-def add_noise(
-    image: Tensor,
-    *,
-    shot: float = 0.0,
-    read: float = 0.0,
-    generator: torch.Generator | None = None,
-) -> Tensor:
-    """Shot-and-read sensor noise (heteroscedastic Gaussian): ``y = x + sqrt(shot · max(x, 0) + read²) · ε``.
-
-    The Gaussian approximation of Poisson photon noise (variance proportional to the signal, gain ``shot``) plus
-    signal-independent read noise (standard deviation ``read``), ``ε ~ N(0, 1)``. Differentiable in ``image``
-    (reparametrised). kornia has only signal-independent noise, hence this function.
-
-    Args:
-        image: Linear RGB. Shape ``[B, C, H, W]``.
-        shot: Shot-noise gain (variance per unit signal), ≥ 0.
-        read: Read-noise standard deviation, ≥ 0.
-        generator: Optional random generator (reproducibility).
-
-    Returns:
-        Noisy image. Shape ``[B, C, H, W]``.
-
-    Example:
-        >>> from torch_interreflect.imaging import add_noise
-        >>> g = torch.Generator().manual_seed(0)
-        >>> add_noise(torch.ones(1, 3, 4, 4), shot=1e-4, read=1e-3, generator=g).shape
-        torch.Size([1, 3, 4, 4])
-    """
-    for name, v in (("shot", shot), ("read", read)):
-        if not (isinstance(v, (int, float)) and v >= 0 and math.isfinite(v)):
-            raise ValueRangeError(f"{name} must be a finite number >= 0; got {v!r}")
-    eps = torch.randn(image.shape, generator=generator, dtype=image.dtype, device=image.device)
-    return image + torch.sqrt(shot * image.clamp_min(0) + read**2) * eps
-
-
-def to_lab(image: Tensor) -> Tensor:
-    """CIE L*a*b* (D65) of linear RGB treated as linear sRGB: ``rgb_to_lab(linear_rgb_to_rgb(clamp(x)))`` (kornia).
-
-    White-balance camera RGB first (:func:`white_balance`) so that white maps near ``L* = 100, a* = b* = 0``.
-
-    Args:
-        image: Linear RGB in [0, 1] (clamped). Shape ``[B, 3, H, W]``.
-
-    Returns:
-        ``L*`` in [0, 100], ``a*``, ``b*``. Shape ``[B, 3, H, W]``.
-
-    Example:
-        >>> from torch_interreflect.imaging import to_lab
-        >>> round(float(to_lab(torch.ones(1, 3, 1, 1))[0, 0]), 3)
-        100.0
-    """
-    import kornia.color
-
-    _check_image(image)
-    return kornia.color.rgb_to_lab(kornia.color.linear_rgb_to_rgb(image.clamp(0.0, 1.0)))
-
-
-def delta_e(image: Tensor, reference: Tensor) -> Tensor:
-    """Per-pixel CIE 1976 colour difference ``ΔE*ab = |Lab(image) − Lab(reference)|`` (see :func:`to_lab`).
-
-    Args:
-        image: Linear RGB. Shape ``[B, 3, H, W]``.
-        reference: Linear RGB. Shape ``[B, 3, H, W]``.
-
-    Returns:
-        ΔE per pixel. Shape ``[B, H, W]``.
-
-    Example:
-        >>> from torch_interreflect.imaging import delta_e
-        >>> float(delta_e(torch.ones(1, 3, 2, 2), torch.ones(1, 3, 2, 2)).max())
-        0.0
-    """
-    _check_image(reference, "reference")
-    return (to_lab(image) - to_lab(reference)).norm(dim=1)

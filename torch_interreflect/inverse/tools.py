@@ -37,14 +37,16 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from .camera import Camera
-from .errors import ShapeError, ValueRangeError
-from .kernel import FormFactors
-from .layers.illuminant import CCT_RANGE, IlluminantBasis, cct_to_daylight_coefficients
-from .layers.interreflection import Interreflection, render
-from .layers.reflectance import RGBToSpectrum
-from .solve import radiance as _radiance
-from .solve import solve as _solve
+from ..camera.facet_rgb import facet_rgb as render
+from ..camera.sensor import Camera
+from ..errors import ShapeError, ValueRangeError
+from ..formfactors.operator import FormFactors
+from ..layers.illuminant import IlluminantBasis
+from ..layers.interreflection import Interreflection
+from ..layers.reflectance import RGBToSpectrum
+from ..solver.api import radiance as _radiance
+from ..solver.api import solve as _solve
+from ..spectral.illuminants import CCT_RANGE, cct_to_daylight_coefficients
 
 __all__ = [
     "IlluminantEstimate",
@@ -104,7 +106,7 @@ def reflectance_from_radiance(form_factors: FormFactors, radiance: Tensor, E0: T
 
     Example:
         >>> import torch, torch_interreflect as ti
-        >>> from torch_interreflect.solve import solve, radiance
+        >>> from torch_interreflect.solver import solve, radiance
         >>> from torch_interreflect.inverse import reflectance_from_radiance
         >>> K = ti.form_factors(ti.scenes.v_groove(45.0, divisions=2))
         >>> r = torch.rand(8, 31, dtype=torch.float64); E0 = torch.ones(8, 31, dtype=torch.float64)
@@ -365,7 +367,7 @@ def remove_interreflections(
 
     Example:
         >>> import torch, torch_interreflect as ti
-        >>> from torch_interreflect.solve import solve, radiance
+        >>> from torch_interreflect.solver import solve, radiance
         >>> from torch_interreflect.inverse import remove_interreflections
         >>> K = ti.form_factors(ti.scenes.v_groove(45.0, divisions=2)).to(torch.float64)
         >>> r = torch.full((8, 31), 0.8, dtype=torch.float64); E0 = torch.ones(8, 31, dtype=torch.float64)

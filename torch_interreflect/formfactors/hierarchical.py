@@ -45,8 +45,8 @@ import torch
 from torch import Tensor
 from tqdm.auto import tqdm
 
-from .errors import ShapeError, ValueRangeError
-from .scene import Scene
+from ..errors import ShapeError, ValueRangeError
+from ..geometry.scene import Scene
 
 __all__ = ["HierarchicalFormFactors", "hierarchical_form_factors"]
 
@@ -232,10 +232,10 @@ class _ClusterVisibility:
 
     def __init__(self, sc: Scene, tree: _Tree, occlusion: Literal["auto"] | bool, samples: int, eps: float,
                  caster: Any) -> None:
-        from .formfactors import _plane_groups
+        from ..geometry._polygon import plane_groups
 
         self.tree, self.occlusion, self.samples, self.eps = tree, occlusion, samples, eps
-        self.groups = _plane_groups(sc, eps) if occlusion == "auto" else None
+        self.groups = plane_groups(sc, eps) if occlusion == "auto" else None
         self.caster = caster
         self.cent, self.normals, self.areas = (t.detach().numpy() for t in (sc.centroids, sc.normals, sc.areas))
         self.rays = 0
@@ -604,8 +604,10 @@ def hierarchical_form_factors(
         >>> E.shape
         torch.Size([153, 1])
     """
-    from .formfactors import _pair_values, _plane_eps, _PointVisibility
-    from .raycast import RayCaster
+    from ..geometry._polygon import plane_eps
+    from ..geometry.raycast import RayCaster
+    from .quadrature import pair_values
+    from .visibility import PointVisibility
 
     if not isinstance(scene, Scene):
         raise TypeError(f"hierarchical_form_factors expects a Scene; got {type(scene).__name__}")
@@ -629,7 +631,7 @@ def hierarchical_form_factors(
     if progress is None:
         progress = F >= 5000
     sc = scene.to(torch.float64).to("cpu")
-    eps = _plane_eps(scene)
+    eps = plane_eps(scene)
     info: dict[str, Any] = {"eta": float(eta), "leaf_size": leaf_size, "num_facets": F}
 
     t = time.perf_counter()
@@ -651,7 +653,7 @@ def hierarchical_form_factors(
     t = time.perf_counter()
     perm = torch.as_tensor(tree.perm)
     qinfo: dict[str, Any] = {}
-    vis = _PointVisibility(sc, visibility_samples, caster) if caster is not None else None
+    vis = PointVisibility(sc, visibility_samples, caster) if caster is not None else None
     rows_l, cols_l, vals_l = [], [], []
     occluded = torch.zeros(F, dtype=torch.bool)
     sizes_a = tree.end[na] - tree.start[na]
@@ -677,7 +679,7 @@ def hierarchical_form_factors(
         if iu.numel() == 0:
             continue
         n_pairs_total += int(iu.numel())
-        dom, tgt, value, need, vis = _pair_values(
+        dom, tgt, value, need, vis = pair_values(
             sc, iu, ju, occlusion, quadrature_tol, None, visibility_samples, 1 << 18, False, qinfo, eps, vis
         )
         occluded[dom[need]] = True
@@ -768,7 +770,7 @@ def _estimate_error(K: HierarchicalFormFactors, sc: Scene, tree: _Tree, fa: np.n
     per draw; the relative error of those entries (unoccluded, against the dense quadrature) times the far
     share of the row sums estimates the relative error of a product with a smooth vector.
     """
-    from .formfactors import _pair_values
+    from .quadrature import pair_values
 
     rng = np.random.default_rng(0)
     areas, normals = sc.areas.detach().numpy(), sc.normals.detach().numpy()
@@ -801,7 +803,7 @@ def _estimate_error(K: HierarchicalFormFactors, sc: Scene, tree: _Tree, fa: np.n
     keep = _mutual_facing(sc, it, jt, eps)
     exact = np.zeros(samples)
     if bool(keep.any()):
-        _, _, value, _, _ = _pair_values(sc, it[keep], jt[keep], False, 1e-4, None, 1, 1 << 18, False, {}, eps)
+        _, _, value, _, _ = pair_values(sc, it[keep], jt[keep], False, 1e-4, None, 1, 1 << 18, False, {}, eps)
         # value = A_dom F_dom,tgt; we want F_ij = value / A_i
         exact[keep.numpy()] = value.numpy() / areas[i[keep.numpy()]]
     rel = float(np.sqrt(np.mean((approx - exact) ** 2) / max(np.mean(approx**2), 1e-300)))

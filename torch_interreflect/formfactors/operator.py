@@ -1,4 +1,5 @@
-"""The :class:`FormFactors` container: the form-factor matrix ``F`` of a scene, dense or sparse.
+"""The form-factor operator: the :class:`FormFactorOperator` protocol that the solver relies on, and the
+:class:`FormFactors` container (the matrix ``F`` of a scene, dense or sparse), which implements it.
 
 ``F[i, j]`` is the fraction of the light leaving facet ``i`` that arrives at facet ``j`` (DESIGN.md §1). The
 container also holds the facet areas (for reciprocity ``A_i F_ij = A_j F_ji`` and the symmetric form
@@ -10,14 +11,45 @@ from __future__ import annotations
 import math
 import warnings
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Protocol, runtime_checkable
 
 import torch
 from torch import Tensor
 
-from .errors import ShapeError, ValueRangeError
+from ..errors import ShapeError, ValueRangeError
 
-__all__ = ["FormFactors"]
+__all__ = ["FormFactorOperator", "FormFactors"]
+
+
+@runtime_checkable
+class FormFactorOperator(Protocol):
+    """What :func:`torch_interreflect.solve` needs of form factors: size, dtype, device, areas, ``F @ x``, row sums.
+
+    :class:`FormFactors` (a stored matrix) and :class:`~torch_interreflect.formfactors.HierarchicalFormFactors`
+    (an operator: near field plus far blocks) both implement it. The solver uses a stored ``matrix`` when the
+    object has one (dense Cholesky, CG on the stored matrix, gradients for ``F``); otherwise it needs only
+    ``matmul`` (CG / Neumann on the operator, gradients for reflectance and ``E0``).
+
+    Shape:
+        - areas: ``[F]`` (m²)
+        - matmul: ``[F, N] → [F, N]``
+        - row_sums: ``[F]``
+    """
+
+    @property
+    def num_facets(self) -> int: ...
+
+    @property
+    def dtype(self) -> torch.dtype: ...
+
+    @property
+    def device(self) -> torch.device: ...
+
+    areas: Tensor
+
+    def matmul(self, x: Tensor) -> Tensor: ...
+
+    def row_sums(self) -> Tensor: ...
 
 
 @dataclass

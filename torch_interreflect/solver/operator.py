@@ -1,4 +1,5 @@
-""":func:`~torch_interreflect.solve` for form factors given as an operator (:class:`HierarchicalFormFactors`).
+""":func:`~torch_interreflect.solve` for form factors given as an operator (e.g.
+:class:`~torch_interreflect.HierarchicalFormFactors`).
 
 Same system, same methods as the matrix path (conjugate gradients on the symmetric form, or the Neumann series),
 but ``F`` is only applied through its product. Gradients reach the reflectance and ``E0`` through the adjoint
@@ -16,25 +17,19 @@ import torch
 from torch import Tensor
 from torch.autograd.function import once_differentiable
 
-from ._solvers import Stats, operator_cg, operator_neumann
-from .errors import SingularSystemError
-from .hierarchical import HierarchicalFormFactors
-from .solve import (
-    DEFAULT_MAX_ITER,
-    SolveInfo,
-    _as_float,
-    _check_finite,
-    _check_reflectance,
-    _from_columns,
-    _shapes,
-    _to_columns,
-    _warn_if_not_converged,
-)
+from .._checks import as_real_tensor, check_finite, check_reflectance
+from ..errors import SingularSystemError
+from ..formfactors.operator import FormFactorOperator
+from .columns import broadcast_facet_shapes, from_columns, to_columns
+from .info import SolveInfo, warn_if_not_converged
+from .krylov import operator_cg, operator_neumann
+from .method import DEFAULT_MAX_ITER
+from .plan import Stats
 
 
 @dataclass
 class _OpConfig:
-    op: HierarchicalFormFactors
+    op: FormFactorOperator
     method: str
     tol: float
     max_iter: int
@@ -76,13 +71,13 @@ class _OperatorSolve(torch.autograd.Function):
             return None, None, None
         stats = Stats()
         gam = _run(cfg, r, gx, True, stats)
-        _warn_if_not_converged(stats, "adjoint (backward) solve")
+        warn_if_not_converged(stats, "adjoint (backward) solve")
         grad_r = cfg.op.rmatmul(gam) * x if need_r else None
         return grad_r, (gam if need_b else None), None
 
 
 def solve_operator(
-    op: HierarchicalFormFactors,
+    op: FormFactorOperator,
     reflectance: Tensor,
     E0: Tensor,
     *,
@@ -95,12 +90,13 @@ def solve_operator(
     """The body of :func:`~torch_interreflect.solve` for a :class:`HierarchicalFormFactors` (validated args)."""
     if method == "dense":
         raise ValueError(
-            "method='dense' needs the [F, F] matrix; a HierarchicalFormFactors supports method 'auto', 'cg' or "
+            "method='dense' needs the [F, F] matrix; an operator (HierarchicalFormFactors) supports method 'auto', "
+            "'cg' or "
             "'neumann'"
         )
     method = "cg" if method == "auto" else method
-    reflectance = _as_float(reflectance, "reflectance")
-    E0 = _as_float(E0, "E0")
+    reflectance = as_real_tensor(reflectance, "reflectance")
+    E0 = as_real_tensor(E0, "E0")
     dtype = op.dtype
     for name, t in (("reflectance", reflectance), ("E0", E0)):
         if t.device != op.device:
@@ -110,11 +106,11 @@ def solve_operator(
     if dtype != op.dtype:
         op = op.to(dtype)
     n = op.num_facets
-    r, e0, shape = _shapes(n, reflectance.to(dtype), E0.to(dtype))
-    _check_reflectance(r)
-    _check_finite(e0, "E0", -2)
-    r_cols = _to_columns(r, shape)
-    b_cols = _to_columns(e0, shape)
+    r, e0, shape = broadcast_facet_shapes(n, reflectance.to(dtype), E0.to(dtype))
+    check_reflectance(r)
+    check_finite(e0, "E0", -2)
+    r_cols = to_columns(r, shape)
+    b_cols = to_columns(e0, shape)
     stats = Stats()
     if bounces is not None:
         x = b_cols
@@ -125,9 +121,9 @@ def solve_operator(
         cfg = _OpConfig(op=op, method=method, tol=float(tol),
                         max_iter=int(max_iter if max_iter is not None else DEFAULT_MAX_ITER[method]), stats=stats)
         x = _OperatorSolve.apply(r_cols, b_cols, cfg)
-        _warn_if_not_converged(stats, f"solve(method={method!r})")
+        warn_if_not_converged(stats, f"solve(method={method!r})")
         method_used, iters = method, stats.iterations
-    E = _from_columns(x, shape)
+    E = from_columns(x, shape)
     if not return_info:
         return E
     with torch.no_grad():

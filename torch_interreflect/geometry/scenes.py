@@ -1,6 +1,6 @@
 """Built-in scenes: the V-groove and W shape of Deeb et al. (2017), box corner, closed box, Cornell box.
 
-All sizes are in metres. Every builder returns a :class:`~torch_interreflect.scene.Scene` whose
+All sizes are in metres. Every builder returns a :class:`~torch_interreflect.Scene` whose
 ``material`` index names its parts (``scene.material_names``), with facets ordered part by part.
 """
 

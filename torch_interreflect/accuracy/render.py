@@ -42,14 +42,15 @@ import torch
 from torch import Tensor
 from tqdm.auto import tqdm
 
-from . import lights, spectral
-from .camera import Camera
-from .errors import ShapeError, ValueRangeError
-from .formfactors import form_factors as _form_factors
-from .kernel import FormFactors
-from .scene import Scene, area_average
-from .solve import _estimate_cg_iterations
-from .solve import solve as _solve
+from .. import lights, spectral
+from ..camera.sensor import Camera
+from ..errors import AccuracyWarning, ShapeError, ValueRangeError
+from ..formfactors.operator import FormFactors
+from ..formfactors.quadrature import form_factors as _form_factors
+from ..geometry.scene import Scene, area_average
+from ..lights import light_geometry
+from ..solver.api import solve as _solve
+from ..solver.method import estimate_cg_iterations
 
 __all__ = ["BUDGET", "AccuracyReport", "AccuracyWarning", "Plan", "RenderResult", "plan", "render"]
 
@@ -74,10 +75,6 @@ Q_MIN, Q_MAX = 1 / 3, 0.8
 #: this factor: the error is then not falling with the facet size (the Cornell box's visibility), and going on
 #: would spend minutes without reaching the target.
 STALL = 0.8
-
-
-class AccuracyWarning(UserWarning):
-    """The requested accuracy was not reached within the limits (``max_facets``, ``max_iterations``)."""
 
 
 @dataclass
@@ -206,8 +203,6 @@ def _rms(x: Tensor) -> float:
 # ------------------------------------------------------------------------------------------- the light
 def _light_factor(light: Any, scene: Scene, K: FormFactors, user: Tensor, num_user: int) -> Tensor:
     """Geometric factor ``g [n]`` of the light on the leaves: ``E0 = g ⊗ spectrum``."""
-    from .layers.interreflection import light_geometry
-
     if isinstance(light, str) and light == "sky":
         return lights.sky(scene, K, torch.ones(1, dtype=scene.dtype, device=scene.device))[:, 0]
     if isinstance(light, Tensor) and light.ndim == 1 and light.shape[0] == num_user and num_user != 3:
@@ -360,7 +355,7 @@ def render(
         light: ``"uniform"`` (every facet gets the illuminant), ``"sky"`` (a uniform sky of radiance
             ``illuminant``), a direction ``[3]`` (a sun of irradiance ``illuminant``, with cast shadows), a material
             name or a boolean mask ``[F]`` (an area light of radiance ``illuminant``), or a geometric factor ``[F]``
-            per user facet (see :func:`torch_interreflect.layers.light_geometry`).
+            per user facet (see :func:`torch_interreflect.lights.light_geometry`).
         illuminant: Spectrum of the light on the grid, ``[..., L]`` (W·m⁻²·nm⁻¹, or W·sr⁻¹·m⁻²·nm⁻¹ for the sky
             and area lights), or a name / CCT for :func:`torch_interreflect.spectral.illuminant`.
         camera: When given, the target is the error of camera RGB and the output includes ``rgb``; the camera's
@@ -577,7 +572,7 @@ def plan(
     if rho < 1:
         target = share * (1 - rho) / spread
         n_series = 1 if rho == 0 else max(1, math.ceil(math.log(target) / math.log(rho)))
-        cg_iters = _estimate_cg_iterations(rho, target, leaves.scene.num_facets)
+        cg_iters = estimate_cg_iterations(rho, target, leaves.scene.num_facets)
         if n_series - 1 <= cg_iters:
             method, bounces, solver_tol = "series", n_series, 0.0
             solver_bound = rho**n_series / (1 - rho) * spread

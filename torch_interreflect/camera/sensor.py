@@ -14,35 +14,10 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
-from . import spectral
-from .errors import ShapeError
-from .imaging import (
-    Projection,
-    add_noise,
-    blur,
-    delta_e,
-    look_at,
-    project,
-    render_image,
-    to_lab,
-    to_srgb,
-    white_balance,
-)
+from .. import spectral
+from ..errors import ShapeError
 
-__all__ = [
-    "Camera",
-    "Projection",
-    "add_noise",
-    "blur",
-    "delta_e",
-    "look_at",
-    "project",
-    "render_image",
-    "spectral_to_rgb",
-    "to_lab",
-    "to_srgb",
-    "white_balance",
-]
+__all__ = ["Camera", "spectral_to_rgb"]
 
 
 def _check_inputs(radiance: Tensor, sensitivities: Tensor, wavelengths: Tensor) -> None:

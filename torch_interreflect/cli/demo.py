@@ -18,10 +18,11 @@ from pathlib import Path
 import torch
 from tqdm.auto import tqdm
 
-from . import lights, scenes, spectral
-from .camera import Camera
-from .formfactors import form_factors
-from .solve import radiance, solve
+from .. import lights, spectral
+from ..camera.sensor import Camera
+from ..formfactors.quadrature import form_factors
+from ..geometry import scenes
+from ..solver.api import radiance, solve
 
 __all__ = ["DemoConfig", "run_demo"]
 

@@ -15,7 +15,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from .errors import GeometryError, ShapeError
+from ..errors import GeometryError, ShapeError
 
 __all__ = ["Scene", "area_average"]
 

@@ -51,8 +51,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--divisions", type=int, default=10, help="facets per plate edge (default 10, as the paper)")
     p.add_argument("--no-progress", action="store_true", help="hide the progress bar")
     p.set_defaults(func=_demo)
-    from .training.generator import add_generate_parser
-    from .training.train import add_train_parser
+    from ..training.generator import add_generate_parser
+    from ..training.train import add_train_parser
 
     add_generate_parser(sub)
     add_train_parser(sub)

@@ -1,0 +1,72 @@
+"""Shared validators used by every stage: each raises a typed error from :mod:`.errors` naming what was
+expected and what came."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from .errors import ValueRangeError
+
+__all__ = ["as_float_tensor", "as_real_tensor", "check_finite", "check_reflectance", "describe_index"]
+
+
+
+def as_float_tensor(x: Tensor | float, name: str, like: Tensor | None = None) -> Tensor:
+    if isinstance(x, Tensor):
+        if not x.is_floating_point():
+            x = x.to(torch.get_default_dtype() if like is None else like.dtype)
+        return x
+    if isinstance(x, bool) or not isinstance(x, (int, float)):
+        raise TypeError(f"{name} must be a number or a floating tensor; got {type(x).__name__}")
+    if like is not None:
+        return torch.tensor(float(x), dtype=like.dtype, device=like.device)
+    return torch.tensor(float(x), dtype=torch.get_default_dtype())
+
+
+def as_real_tensor(x: Any, name: str) -> Tensor:
+    if not isinstance(x, Tensor):
+        try:
+            x = torch.as_tensor(np.asarray(x))
+        except Exception as exc:
+            raise TypeError(f"{name} must be a tensor; got {type(x).__name__}") from exc
+    if x.is_complex():
+        raise TypeError(f"{name} must be real; got dtype {x.dtype}")
+    return x
+
+
+def describe_index(t: Tensor, flat_index: int, facet_dim: int) -> str:
+    coord = np.unravel_index(flat_index, tuple(t.shape))
+    facet = int(coord[facet_dim])
+    rest = [int(c) for i, c in enumerate(coord) if i != facet_dim % t.ndim]
+    return f"facet {facet}" + (f" (other indices {rest})" if any(rest) else "")
+
+
+def check_finite(t: Tensor, name: str, facet_dim: int) -> None:
+    bad = ~torch.isfinite(t)
+    if bool(bad.any()):
+        k = int(torch.nonzero(bad.reshape(-1))[0])
+        raise ValueRangeError(
+            f"{name} must be finite; got {float(t.reshape(-1)[k])} at {describe_index(t, k, facet_dim)} "
+            f"({int(bad.sum())} non-finite values)"
+        )
+
+
+def check_reflectance(r: Tensor) -> None:
+    """``r`` is ``[..., F, L]``."""
+    check_finite(r, "reflectance", -2)
+    if r.numel() == 0:
+        return
+    flat = r.detach().reshape(-1)
+    hi, lo = int(flat.argmax()), int(flat.argmin())
+    if float(flat[hi]) > 1:
+        raise ValueRangeError(
+            f"reflectance must lie in [0, 1]; got max {float(flat[hi]):.6g} at {describe_index(r, hi, -2)}"
+        )
+    if float(flat[lo]) < 0:
+        raise ValueRangeError(
+            f"reflectance must lie in [0, 1]; got min {float(flat[lo]):.6g} at {describe_index(r, lo, -2)}"
+        )

@@ -1,0 +1,22 @@
+"""The form-factor stage: ``F_ij`` between the facets of a scene, and the operator the solver relies on.
+
+- :mod:`.operator`: :class:`FormFactors` (dense or CSR) and the :class:`FormFactorOperator` protocol.
+- :mod:`.quadrature`: :func:`form_factors` (Lambert's contour formula, adaptive Gauss quadrature).
+- :mod:`.contour`: :func:`point_polygon_factor`; :mod:`.rules`: quadrature rules and orders.
+- :mod:`.visibility`: occlusion by Embree rays; :mod:`.montecarlo`: the paper's estimator.
+- :mod:`.hierarchical`: :func:`hierarchical_form_factors` for large scenes (cluster tree, far blocks).
+"""
+
+from .contour import point_polygon_factor
+from .hierarchical import HierarchicalFormFactors, hierarchical_form_factors
+from .operator import FormFactorOperator, FormFactors
+from .quadrature import form_factors
+
+__all__ = [
+    "FormFactorOperator",
+    "FormFactors",
+    "HierarchicalFormFactors",
+    "form_factors",
+    "hierarchical_form_factors",
+    "point_polygon_factor",
+]

@@ -1,0 +1,346 @@
+"""Form factors between facets: Lambert's contour formula integrated by adaptive Gauss quadrature.
+
+``F_ij`` (DESIGN.md §1-2) is computed once per unordered pair that can exchange light:
+
+1. **Culling** (exact, free): ``i`` and ``j`` exchange light only if each has a part strictly in front of
+   the other's plane; coplanar facets never do.
+2. **Quadrature**: the exact point-to-polygon factor (Lambert's contour formula, with the target clipped at
+   the horizon of the integration facet where it crosses it) is integrated over the smaller facet of the
+   pair with a Gauss-Legendre rule whose order follows the pair's distance / size ratio. Pairs that share an
+   edge or a vertex get a rule graded toward the shared edge/vertex, where the integrand has its
+   logarithmic singularity. Reciprocity gives the other direction.
+3. **Occlusion**: pairs that some third facet could block (its plane separates the two facets and its box
+   overlaps theirs) get a fractional, kernel-weighted visibility from rays cast with Embree.
+
+``method="monte_carlo"`` is the paper's estimator (its §5.2), kept for comparison.
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Literal
+
+import torch
+from torch import Tensor
+from tqdm.auto import tqdm
+
+from ..errors import ValueRangeError
+from ..geometry._polygon import (
+    bilinear,
+    clip_polygons,
+    facing_matrix,
+    plane_eps,
+    rotate_to_plane_edge,
+    signed_distances,
+)
+from ..geometry.scene import Scene
+from .contour import point_polygon_factor
+from .montecarlo import monte_carlo
+from .operator import FormFactors
+from .rules import default_adjacent_order, order_for, quadrature_rule
+from .visibility import PointVisibility, blocker_candidates
+
+__all__ = ["form_factors", "pair_values"]
+
+#: Dense storage up to this many facets; sparse CSR above it when at most ``_SPARSE_DENSITY`` is nonzero.
+_DENSE_MAX_FACETS = 4096
+_SPARSE_DENSITY = 0.25
+
+
+# ---------------------------------------------------------------------------------------------- rules
+
+
+# ----------------------------------------------------------------------------------- the integrand
+
+
+# ------------------------------------------------------------------------------- pair selection
+
+
+# ------------------------------------------------------------------------------------ main entry
+def form_factors(
+    scene: Scene,
+    *,
+    method: Literal["quadrature", "monte_carlo"] = "quadrature",
+    occlusion: Literal["auto"] | bool = "auto",
+    tol: float = 1e-6,
+    adjacent_order: int | None = None,
+    visibility_samples: int = 3,
+    samples: int = 100_000,
+    layout: Literal["auto", "dense", "sparse"] = "auto",
+    generator: torch.Generator | None = None,
+    chunk_points: int = 1 << 18,
+    progress: bool | None = None,
+) -> FormFactors:
+    """Form factors ``F_ij`` of a scene: the fraction of light leaving facet i that arrives at facet j.
+
+    Args:
+        scene: The scene.
+        method: ``"quadrature"`` (exact contour formula with adaptive Gauss quadrature, the default) or
+            ``"monte_carlo"`` (the paper's estimator: ``samples`` cosine-distributed rays per facet).
+        occlusion: ``"auto"`` casts visibility rays only for pairs that some third facet could block (none in
+            a V-groove, a box corner or a closed box); ``True`` casts them for every pair, ``False`` ignores
+            occlusion.
+        tol: Target relative accuracy of each entry; sets the quadrature order of every pair.
+        adjacent_order: Gauss order (per direction) for pairs that share an edge or a vertex (default from
+            ``tol``; these use rules graded toward the shared edge).
+        visibility_samples: Points per direction on the target facet for visibility rays: every quadrature
+            point of a pair that a third facet could block casts ``visibility_samples²`` kernel-weighted rays.
+        samples: Rays per facet for ``method="monte_carlo"``.
+        layout: Storage of the matrix: dense, sparse CSR, or chosen by size and density.
+        generator: Random generator for ``method="monte_carlo"``.
+        chunk_points: Quadrature points × polygon corners evaluated at once; the default keeps every
+            temporary (a few MB) in cache, which is several times faster than larger blocks.
+        progress: Show a progress bar (default: only for large scenes).
+
+    Returns:
+        :class:`~torch_interreflect.FormFactors` in the scene's dtype and device, with ``info``
+        saying what was done (pairs, quadrature points, rays, seconds).
+
+    Shape:
+        - output ``.to_dense()``: ``[F, F]``
+
+    Example:
+        >>> import torch_interreflect as ti
+        >>> K = ti.form_factors(ti.scenes.closed_box(divisions=2))
+        >>> float(K.row_sums().min()) > 0.999999
+        True
+    """
+    if not isinstance(scene, Scene):
+        raise TypeError(f"form_factors expects a Scene; got {type(scene).__name__}")
+    if method not in ("quadrature", "monte_carlo"):
+        raise ValueError(f"method must be 'quadrature' or 'monte_carlo'; got {method!r}")
+    if occlusion not in ("auto", True, False):
+        raise ValueError(f"occlusion must be 'auto', True or False; got {occlusion!r}")
+    if not (0.0 < tol < 1.0):
+        raise ValueRangeError(f"tol must lie in (0, 1); got {tol}")
+    if layout not in ("auto", "dense", "sparse"):
+        raise ValueError(f"layout must be 'auto', 'dense' or 'sparse'; got {layout!r}")
+    t0 = time.perf_counter()
+    F = scene.num_facets
+    if progress is None:
+        progress = F >= 2000
+    if method == "monte_carlo":
+        rows, cols, vals, info = monte_carlo(scene, samples, generator)
+    else:
+        rows, cols, vals, info = _quadrature(
+            scene, occlusion, tol, adjacent_order, visibility_samples, chunk_points, progress
+        )
+    scene.areas.detach().to(torch.float64)
+    out_dtype, dev = scene.dtype, scene.device
+    if layout == "auto":
+        nnz = rows.numel()
+        layout = "sparse" if (F > _DENSE_MAX_FACETS and nnz <= _SPARSE_DENSITY * F * F) else "dense"
+    if layout == "dense":
+        mat = torch.zeros(F, F, dtype=torch.float64, device=vals.device)
+        mat[rows, cols] = vals
+        matrix = mat.to(out_dtype)
+    else:
+        matrix = torch.sparse_coo_tensor(torch.stack([rows, cols]), vals, (F, F)).coalesce()
+        matrix = matrix.to(out_dtype).to_sparse_csr()
+    info.update(method=method, seconds=time.perf_counter() - t0, layout=layout, nnz=int(rows.numel()))
+    return FormFactors(matrix.to(dev), scene.areas.detach().to(out_dtype), info)
+
+
+def _quadrature(
+    scene: Scene,
+    occlusion: Literal["auto"] | bool,
+    tol: float,
+    adjacent_order: int | None,
+    visibility_samples: int,
+    chunk_points: int,
+    progress: bool,
+) -> tuple[Tensor, Tensor, Tensor, dict]:
+    sc = scene.to(torch.float64).to("cpu")
+    corners = sc.corners
+    normals = sc.normals
+    cent = sc.centroids
+    areas = sc.areas
+    F = corners.shape[0]
+    eps = plane_eps(scene)
+    info: dict = {}
+
+    t = time.perf_counter()
+    front = facing_matrix(corners, normals, cent, eps)
+    mutual = front & front.T
+    iu, ju = torch.nonzero(torch.triu(mutual, diagonal=1), as_tuple=True)
+    info["pairs"] = int(iu.numel())
+    info["seconds_cull"] = time.perf_counter() - t
+    if iu.numel() == 0:
+        empty = torch.zeros(0, dtype=torch.int64)
+        info.update(points=0, rays=0, occluded_pairs=0, occluded_facets=torch.zeros(F, dtype=torch.bool))
+        return empty, empty, torch.zeros(0, dtype=torch.float64), info
+
+    dom, tgt, value, need, vis = pair_values(
+        sc, iu, ju, occlusion, tol, adjacent_order, visibility_samples, chunk_points, progress, info, eps
+    )
+
+    # facets with a pair whose visibility was estimated by rays: their row sums are estimates, not exact
+    approx = torch.zeros(F, dtype=torch.bool)
+    approx[dom[need]] = True
+    approx[tgt[need]] = True
+    info.update(occluded_pairs=int(need.sum()), rays=vis.rays if vis else 0, occluded_facets=approx)
+
+    rows = torch.cat([dom, tgt])
+    cols = torch.cat([tgt, dom])
+    vals = torch.cat([value / areas[dom], value / areas[tgt]])
+    keep = vals > 0
+    return rows[keep], cols[keep], vals[keep], info
+
+
+def pair_values(
+    sc: Scene,
+    iu: Tensor,
+    ju: Tensor,
+    occlusion: Literal["auto"] | bool,
+    tol: float,
+    adjacent_order: int | None,
+    visibility_samples: int,
+    chunk_points: int,
+    progress: bool,
+    info: dict,
+    eps: float,
+    vis: PointVisibility | None = None,
+) -> tuple[Tensor, Tensor, Tensor, Tensor, PointVisibility | None]:
+    """``A_i F_ij`` for given pairs ``(iu, ju)`` of mutually facing facets of ``sc`` (float64, CPU).
+
+    Returns ``(dom, tgt, value, need, vis)``: each pair reordered so that ``dom`` is the smaller facet (the
+    integration domain), ``value = A_dom F_dom,tgt`` (clamped at 0), ``need`` the pairs whose visibility came
+    from rays, and the visibility object (``vis`` when given, reused across calls). Adds ``points``,
+    ``seconds_quadrature``, ``seconds_visibility``, ``pairs_adjacent`` and ``pairs_clipped`` to ``info``
+    (accumulating over calls).
+    """
+    corners, normals, cent, areas, diam = sc.corners, sc.normals, sc.centroids, sc.areas, sc.diameters
+    # integrate over the smaller facet of each pair (the "domain"), contour over the other ("target")
+    swap = areas[iu] > areas[ju]
+    dom = torch.where(swap, ju, iu)
+    tgt = torch.where(swap, iu, ju)
+
+    t = time.perf_counter()
+    value = torch.empty(dom.numel(), dtype=torch.float64)  # A_dom F_dom,tgt
+    # classify: shared edge / shared vertex / straddling / regular
+    P = dom.numel()
+    radius = (corners - cent[:, None, :]).norm(dim=-1).max(dim=1).values
+    dist = (cent[dom] - cent[tgt]).norm(dim=-1)
+    rho = dist / torch.maximum(diam[dom], diam[tgt])
+    order = order_for(rho, tol)
+    n_adj = adjacent_order or default_adjacent_order(tol)
+    # shared edges / vertices are only possible where the bounding spheres touch
+    has_edge = torch.zeros(P, dtype=torch.bool)
+    has_vertex = torch.zeros(P, dtype=torch.bool)
+    shift = torch.zeros(P, dtype=torch.int64)
+    near = torch.nonzero(dist <= (radius[dom] + radius[tgt]) * (1 + 1e-6)).reshape(-1)
+    if near.numel():
+        cd, ct = corners[dom[near]], corners[tgt[near]]
+        tol_v = 1e-7 * diam[dom[near]]
+        match = ((cd[:, :, None, :] - ct[:, None, :, :]).norm(dim=-1) <= tol_v[:, None, None]).any(-1)
+        nxt_distinct = (cd - torch.roll(cd, -1, 1)).norm(dim=-1) > tol_v[:, None]
+        edge_k = match & torch.roll(match, -1, 1) & nxt_distinct  # edge k→k+1 of the domain is shared
+        e, vtx = edge_k.any(1), match.any(1) & ~edge_k.any(1)
+        has_edge[near], has_vertex[near] = e, vtx
+        first_edge = torch.argmax(edge_k.to(torch.int8), dim=1)
+        first_vert = torch.argmax(match.to(torch.int8), dim=1)
+        shift[near] = torch.where(e, first_edge, torch.where(vtx, first_vert, torch.zeros_like(first_edge)))
+    # straddling: a target corner strictly behind the domain's plane, or a domain corner behind the target's
+    clip_t = torch.zeros(P, dtype=torch.bool)
+    clip_d = torch.zeros(P, dtype=torch.bool)
+    for s in range(0, P, 1 << 20):
+        a, b = dom[s : s + (1 << 20)], tgt[s : s + (1 << 20)]
+        clip_t[s : s + (1 << 20)] = (signed_distances(corners[b], cent[a], normals[a]) < -eps).any(1)
+        clip_d[s : s + (1 << 20)] = (signed_distances(corners[a], cent[b], normals[b]) < -eps).any(1)
+
+    points = 0
+    groups: list[tuple[str, Tensor, int]] = []
+    special = clip_d
+    for kind, mask in (("edge", has_edge & ~special), ("vertex", has_vertex & ~special)):
+        sel = torch.nonzero(mask).reshape(-1)
+        if sel.numel():
+            groups.append((kind, sel, n_adj))
+    regular = ~has_edge & ~has_vertex & ~special
+    for n in torch.unique(order[regular]).tolist():
+        sel = torch.nonzero(regular & (order == n)).reshape(-1)
+        groups.append(("plain", sel, int(n)))
+    clipped = torch.nonzero(special).reshape(-1)
+
+    # occlusion: pairs that a third facet could block get a visible fraction at every quadrature point
+    t_vis = time.perf_counter()
+    if occlusion is False:
+        need = torch.zeros(dom.numel(), dtype=torch.bool)
+    elif occlusion is True:
+        need = torch.ones(dom.numel(), dtype=torch.bool)
+    else:
+        need = blocker_candidates(sc, dom, tgt, eps)
+    if vis is None and bool(need.any()):
+        vis = PointVisibility(sc, visibility_samples)
+    vis_before = vis.seconds if vis is not None else 0.0
+    seconds_vis = time.perf_counter() - t_vis
+
+    def visible(p: Tensor, x: Tensor) -> Tensor:
+        """Per-point visible fractions ``[p, Q]`` (1 where no ray is needed)."""
+        out = torch.ones(x.shape[:2], dtype=torch.float64)
+        rows = torch.nonzero(need[p]).reshape(-1)
+        if vis is not None and rows.numel():
+            out[rows] = vis(x[rows], dom[p[rows]], tgt[p[rows]])
+        return out
+
+    bar = tqdm(total=int(dom.numel()), desc="form factors", unit="pair", leave=False,
+               disable=None if progress else True, mininterval=1.0)
+    for kind, sel, n in groups:
+        u, v, w = quadrature_rule(kind, n, torch.float64, torch.device("cpu"))
+        Q = u.numel()
+        per = max(1, chunk_points // (Q * 5))
+        for s in range(0, sel.numel(), per):
+            p = sel[s : s + per]
+            target = corners[tgt[p]]
+            if bool(clip_t[p].any()):
+                target = clip_polygons(target, cent[dom[p]], normals[dom[p]], eps)[:, :5]
+            idx = (torch.arange(4)[None, :] + shift[p, None]) % 4
+            domain = torch.gather(corners[dom[p]], 1, idx[..., None].expand(-1, -1, 3))
+            x, jac = bilinear(domain, u, v)
+            f = point_polygon_factor(x, normals[dom[p]], target) * visible(p, x)
+            value[p] = (f * jac * w).sum(1)
+            points += p.numel() * Q
+            bar.update(p.numel())
+    if clipped.numel():
+        # the domain crosses the target's plane: integrate over the part in front of it. The clipped polygon
+        # (at most five corners) is rotated so that its edge on the target's plane, where the integrand is
+        # singular when the two touch, comes first; the fan triangle on that edge gets the edge-graded rule,
+        # the others (which touch it at one corner) the vertex-graded rule.
+        near = rho[clipped] < 1.0
+        n_clip = torch.where(near, torch.full_like(order[clipped], n_adj), order[clipped].clamp_min(4))
+        for n in torch.unique(n_clip).tolist():
+            rules = [quadrature_rule(kind, int(n), torch.float64, torch.device("cpu")) for kind in ("edge", "vertex")]
+            sub = clipped[n_clip == n]
+            per = max(1, chunk_points // (rules[0][0].numel() * 5))
+            for s in range(0, sub.numel(), per):
+                p = sub[s : s + per]
+                poly = clip_polygons(corners[dom[p]], cent[tgt[p]], normals[tgt[p]], eps)[:, :5]
+                poly = rotate_to_plane_edge(poly, cent[tgt[p]], normals[tgt[p]], eps)
+                target = clip_polygons(corners[tgt[p]], cent[dom[p]], normals[dom[p]], eps)[:, :5]
+                total = torch.zeros(p.numel(), dtype=torch.float64)
+                for k in range(1, 4):
+                    u, v, w = rules[0] if k == 1 else rules[1]
+                    tri = torch.stack([poly[:, 0], poly[:, k], poly[:, k + 1], poly[:, k + 1]], dim=1)
+                    x, jac = bilinear(tri, u, v)
+                    f = point_polygon_factor(x, normals[dom[p]], target) * visible(p, x)
+                    total += (f * jac * w).sum(1)
+                    points += p.numel() * u.numel()
+                value[p] = total
+                bar.update(p.numel())
+    bar.close()
+    value = value.clamp_min(0.0)
+    seconds_vis += (vis.seconds if vis is not None else 0.0) - vis_before
+    for key, add in (
+        ("points", int(points)),
+        ("seconds_quadrature", time.perf_counter() - t - seconds_vis),
+        ("seconds_visibility", seconds_vis),
+        ("pairs_adjacent", int((has_edge | has_vertex).sum())),
+        ("pairs_clipped", int((clip_t | clip_d).sum())),
+    ):
+        info[key] = info.get(key, 0) + add
+    return dom, tgt, value, need, vis
+
+
+# ------------------------------------------------------------------------------------- visibility
+
+
+# ------------------------------------------------------------------------------------ Monte Carlo

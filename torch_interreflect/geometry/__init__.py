@@ -1,0 +1,12 @@
+"""The geometry stage: scenes as tensors of planar facets, built-in scene builders, ray casting.
+
+- :mod:`.scene`: :class:`Scene` (facets as tensors, subdivision, area averaging) and :func:`area_average`.
+- :mod:`.scenes`: builders (``v_groove``, ``box_corner``, ``closed_box``, ``w_shape``, ``cornell_box``, ``room``).
+- :mod:`.raycast`: :class:`RayCaster` (Embree, through ``embreex``; imported on first use).
+"""
+
+from . import scenes
+from .raycast import RayCaster
+from .scene import Scene, area_average
+
+__all__ = ["RayCaster", "Scene", "area_average", "scenes"]

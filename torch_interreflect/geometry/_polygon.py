@@ -1,0 +1,167 @@
+"""Polygon helpers shared by the form factors, the lights and the hierarchical kernel (internal).
+
+Quads are stored as ``[..., 4, 3]`` corner arrays (a triangle repeats its last corner); every helper works on
+batches of polygons in float64 or float32 and keeps autograd where the maths is differentiable.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import Tensor
+
+from .scene import Scene
+
+__all__ = [
+    "bilinear",
+    "clip_polygons",
+    "compact_polygons",
+    "facet_samples",
+    "facing_matrix",
+    "facing_others",
+    "plane_eps",
+    "plane_groups",
+    "rotate_to_plane_edge",
+    "signed_distances",
+    "tangent_frame",
+]
+
+
+
+def bilinear(corners: Tensor, u: Tensor, v: Tensor) -> tuple[Tensor, Tensor]:
+    """Points ``[P, Q, 3]`` and area Jacobians ``[P, Q]`` of the bilinear map of quads ``[P, 4, 3]``."""
+    d0, d1, d2, d3 = (c[:, None, :] for c in corners.unbind(1))
+    uu, vv = u[None, :, None], v[None, :, None]
+    x = (1 - uu) * (1 - vv) * d0 + uu * (1 - vv) * d1 + uu * vv * d2 + (1 - uu) * vv * d3
+    du = (1 - vv) * (d1 - d0) + vv * (d2 - d3)
+    dv = (1 - uu) * (d3 - d0) + uu * (d2 - d1)
+    jac = torch.linalg.cross(du, dv, dim=-1).norm(dim=-1)
+    return x, jac
+
+
+def clip_polygons(poly: Tensor, point: Tensor, normal: Tensor, eps: float) -> Tensor:
+    """Clip polygons ``[P, K, 3]`` to the half-space ``(y − point)·normal >= 0``.
+
+    Returns ``[P, 2K, 3]``: the clipped polygon followed by copies of its first vertex (zero-length edges).
+    Vertices within ``eps`` of the plane count as inside.
+    """
+    P, K, _ = poly.shape
+    d = ((poly - point[:, None, :]) * normal[:, None, :]).sum(-1)  # [P, K]
+    inside = d >= -eps
+    nxt = torch.roll(poly, -1, dims=1)
+    dn = torch.roll(d, -1, dims=1)
+    inside_n = torch.roll(inside, -1, dims=1)
+    cross = inside != inside_n
+    t = torch.where(cross, d / torch.where(cross, d - dn, torch.ones_like(d)), torch.zeros_like(d))
+    inter = poly + t[..., None] * (nxt - poly)
+    slots = torch.stack([poly, inter], dim=2).reshape(P, 2 * K, 3)
+    valid = torch.stack([inside, cross], dim=2).reshape(P, 2 * K)
+    return compact_polygons(slots, valid)[0]
+
+
+def tangent_frame(normals: Tensor) -> tuple[Tensor, Tensor]:
+    """Two unit tangents ``[F, 3]`` completing each unit normal to a right-handed orthonormal frame."""
+    e = torch.eye(3, dtype=normals.dtype, device=normals.device)
+    helper = torch.where(normals[:, :1].abs() < 0.9, e[0], e[1])
+    t1 = torch.linalg.cross(normals, helper, dim=-1)
+    t1 = t1 / t1.norm(dim=-1, keepdim=True)
+    return t1, torch.linalg.cross(normals, t1, dim=-1)
+
+
+def signed_distances(points: Tensor, origin: Tensor, normal: Tensor) -> Tensor:
+    """Signed distances ``[P, K]`` of points ``[P, K, 3]`` to the planes ``(origin [P, 3], normal [P, 3])``."""
+    return ((points - origin[:, None, :]) * normal[:, None, :]).sum(-1)
+
+
+def compact_polygons(poly: Tensor, keep: Tensor) -> tuple[Tensor, Tensor]:
+    """Move the kept corners of ``[P, K, 3]`` to the front (in order) and pad with corner 0; also the count."""
+    K = poly.shape[1]
+    key = (~keep).to(torch.int64) * K + torch.arange(K, device=poly.device)
+    order = torch.argsort(key, dim=1)
+    out = torch.gather(poly, 1, order[..., None].expand(-1, -1, 3))
+    count = keep.sum(1)
+    pad = torch.arange(K, device=poly.device)[None, :] >= count[:, None]
+    return torch.where(pad[..., None], out[:, :1, :], out), count
+
+
+def rotate_to_plane_edge(poly: Tensor, point: Tensor, normal: Tensor, eps: float) -> Tensor:
+    """Rotate clipped polygons ``[P, K, 3]`` so that an edge lying on the clipping plane starts at corner 0."""
+    K = poly.shape[1]
+    poly, count = compact_polygons(poly, (poly - torch.roll(poly, -1, 1)).norm(dim=-1) > eps)
+    count = count.clamp_min(1)
+    ar = torch.arange(K)[None, :]
+    real = ar < count[:, None]
+    nxt = torch.gather(poly, 1, ((ar + 1) % count[:, None])[..., None].expand(-1, -1, 3))
+    on = ((poly - point[:, None, :]) * normal[:, None, :]).sum(-1).abs() <= 4 * eps
+    on_next = ((nxt - point[:, None, :]) * normal[:, None, :]).sum(-1).abs() <= 4 * eps
+    edge = on & on_next & real
+    start = torch.where(edge.any(1), torch.argmax(edge.to(torch.int8), dim=1), torch.zeros_like(count))
+    idx = torch.where(real, (ar + start[:, None]) % count[:, None], start[:, None])
+    return torch.gather(poly, 1, idx[..., None].expand(-1, -1, 3))
+
+
+def facing_matrix(corners: Tensor, normals: Tensor, cent: Tensor, eps: float, chunk: int | None = None) -> Tensor:
+    """``front[i, j]``: some corner of j lies strictly in front of i's plane. Boolean ``[F, F]``."""
+    F = corners.shape[0]
+    chunk = chunk or max(1, (1 << 22) // (4 * F))
+    front = torch.empty(F, F, dtype=torch.bool, device=corners.device)
+    pts = corners  # [F, 4, 3]
+    for s in range(0, F, chunk):
+        n = normals[s : s + chunk]  # [b, 3]
+        c = cent[s : s + chunk]
+        d = torch.einsum("bx,fkx->bfk", n, pts) - (n * c).sum(-1)[:, None, None]
+        front[s : s + chunk] = (d > eps).any(-1)
+    return front
+
+
+def facing_others(scene: Scene) -> Tensor:
+    """``facing_matrix`` of a scene (float64, CPU) with the diagonal cleared: ``[i, j]`` for facets j ≠ i only."""
+    sc = scene.to(torch.float64).to("cpu")
+    front = facing_matrix(sc.corners, sc.normals, sc.centroids, plane_eps(scene))
+    return front.fill_diagonal_(False)
+
+
+def plane_eps(scene: Scene) -> float:
+    """Distance (m) under which a point counts as on a plane: float noise of the scene's own dtype."""
+    c = scene.corners.detach().reshape(-1, 3).double()
+    size = float((c.max(0).values - c.min(0).values).norm())
+    return size * max(1e-9, 16.0 * torch.finfo(scene.dtype).eps)
+
+
+def plane_groups(sc: Scene, eps: float) -> tuple[Tensor, Tensor, Tensor, Tensor] | None:
+    """The planes of the scene's coplanar facet groups that could block anything: normal ``[G, 3]``, offset
+    ``[G]`` and the group's bounding box ``lo, hi [G, 3]``; None when no plane has corners on both sides."""
+    corners, normals, cent = sc.corners, sc.normals, sc.centroids
+    offs = (normals * cent).sum(-1)
+    size = float((corners.reshape(-1, 3).max(0).values - corners.reshape(-1, 3).min(0).values).norm())
+    # group facets by plane (normal and offset rounded well above the float noise of the scene's dtype; a
+    # boundary between two rounding cells only splits a group, which stays conservative)
+    res = max(1e-6, 100.0 * eps / size)
+    key = torch.round(torch.cat([normals, offs[:, None] / size], dim=1) / res)
+    _, plane_of = torch.unique(key, dim=0, return_inverse=True)
+    n_planes = int(plane_of.max()) + 1
+    lo = corners.min(1).values
+    hi = corners.max(1).values
+    idx3 = plane_of[:, None].expand(-1, 3)
+    plo = torch.full((n_planes, 3), math.inf, dtype=lo.dtype).scatter_reduce_(0, idx3, lo, "amin")
+    phi = torch.full((n_planes, 3), -math.inf, dtype=hi.dtype).scatter_reduce_(0, idx3, hi, "amax")
+    first = torch.full((n_planes,), len(plane_of), dtype=torch.int64).scatter_reduce_(
+        0, plane_of, torch.arange(len(plane_of)), "amin"
+    )
+    pn, po = normals[first], offs[first]
+    # a plane can only separate two facets if some corner of the scene lies strictly on each side of it
+    dall = corners.reshape(-1, 3) @ pn.T - po[None, :]
+    useful = (dall > eps).any(0) & (dall < -eps).any(0)
+    if not bool(useful.any()):
+        return None
+    return pn[useful], po[useful], plo[useful], phi[useful]
+
+
+def facet_samples(corners: Tensor, n: int) -> tuple[Tensor, Tensor]:
+    """Midpoint-rule points ``[F, n², 3]`` and area weights ``[F, n²]`` on each facet."""
+    g = (torch.arange(n, dtype=corners.dtype) + 0.5) / n
+    u = g.repeat_interleave(n)
+    v = g.repeat(n)
+    x, jac = bilinear(corners, u, v)
+    return x, jac / (n * n)

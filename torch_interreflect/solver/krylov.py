@@ -1,0 +1,191 @@
+"""Krylov column solvers: conjugate gradients on the symmetric positive definite form (DESIGN.md §1) and the
+Neumann iteration, on a stored matrix or on an operator (a ``matmul`` callable)."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import torch
+from torch import Tensor
+
+from ..errors import SingularSystemError
+from .plan import Stats
+
+__all__ = ["cg", "cg_block", "neumann_block", "operator_cg", "operator_neumann", "symmetric_operator"]
+
+
+
+def symmetric_operator(f: Tensor, sqrt_areas: Tensor) -> Tensor:
+    """``G = A^{1/2} F A^{-1/2}`` (symmetric when ``F`` is reciprocal), dense or CSR like ``f``."""
+    if f.layout == torch.strided:
+        return sqrt_areas[:, None] * f / sqrt_areas[None, :]
+    csr = f.to_sparse_csr()
+    crow, col, vals = csr.crow_indices(), csr.col_indices(), csr.values()
+    rows = torch.repeat_interleave(torch.arange(f.shape[0], device=f.device), crow.diff())
+    vals = vals * sqrt_areas[rows] / sqrt_areas[col]
+    return torch.sparse_csr_tensor(crow, col, vals, tuple(f.shape), check_invariants=False)
+
+
+def cg_block(
+    f: Tensor, areas: Tensor, r: Tensor, b: Tensor, transpose: bool, tol: float, max_iter: int, stats: Stats
+) -> Tensor:
+    sa = areas.sqrt()
+    g = symmetric_operator(f, sa)
+    sa = sa[:, None]
+    s = r.sqrt()
+    if not transpose:
+        u0 = sa * b
+        w = cg(g, s, s * u0, tol, max_iter, stats)
+        return (u0 + g @ (s * w)) / sa
+    v0 = b / sa
+    y = cg(g, s, s * (g @ v0), tol, max_iter, stats)
+    return sa * (v0 + s * y)
+
+
+def operator_cg(
+    apply_f: Callable[[Tensor], Tensor], areas: Tensor, r: Tensor, b: Tensor, transpose: bool, tol: float,
+    max_iter: int, stats: Stats,
+) -> Tensor:
+    """:func:`cg_block` for an ``F`` given only as a product ``apply_f(x) = F @ x`` (``[F, N] -> [F, N]``).
+
+    ``F`` must be exactly reciprocal (``A F`` symmetric); ``G = A^{1/2} F A^{-1/2}`` is applied as
+    ``sa * apply_f(v / sa)``.
+    """
+    sa = areas.sqrt()[:, None]
+
+    def g(v: Tensor) -> Tensor:
+        return sa * apply_f(v / sa)
+
+    s = r.sqrt()
+    if not transpose:
+        u0 = sa * b
+        w = cg(g, s, s * u0, tol, max_iter, stats)
+        return (u0 + g(s * w)) / sa
+    v0 = b / sa
+    y = cg(g, s, s * g(v0), tol, max_iter, stats)
+    return sa * (v0 + s * y)
+
+
+def operator_neumann(
+    apply_f: Callable[[Tensor], Tensor], areas: Tensor, r: Tensor, b: Tensor, transpose: bool, tol: float,
+    max_iter: int, stats: Stats,
+) -> Tensor:
+    """:func:`neumann_block` for an ``F`` given only as a product (reciprocal: ``Fᵀ x = A F (x / A)``)."""
+    a = areas[:, None]
+    op = (lambda x: a * apply_f(x / a)) if transpose else apply_f
+    return neumann_block(op, areas, r, b, transpose, tol, max_iter, stats)
+
+
+def cg(g: Tensor | Callable[[Tensor], Tensor], s: Tensor, rhs: Tensor, tol: float, max_iter: int,
+        stats: Stats) -> Tensor:
+    """Conjugate gradients on ``(I − S G S) w = rhs`` for all columns at once, one GEMM/SpMM per iteration.
+
+    ``g`` is a matrix or a product callable. Converged columns are written out and dropped from the working set
+    (so later products are narrower).
+    """
+    gmul = g if callable(g) else g.__matmul__
+    x = torch.zeros_like(rhs)
+    bnorm2 = (rhs * rhs).sum(0)
+    active = torch.nonzero(bnorm2 > 0).squeeze(1)
+    if active.numel() == 0:
+        return x
+    thresh = (tol * tol) * bnorm2[active]
+    bn2 = bnorm2[active]
+    sa = s[:, active]
+    res = rhs[:, active].clone()
+    p = res.clone()
+    xa = torch.zeros_like(res)
+    rr = torch.linalg.vecdot(res, res, dim=0)
+    it = 0
+    worst = 0.0
+    while True:
+        done = rr <= thresh
+        if it >= max_iter:
+            done = torch.ones_like(done)
+        if bool(done.any()):
+            x[:, active[done]] = xa[:, done]
+            worst = max(worst, float((rr[done] / bn2[done]).max().sqrt()))
+            keep = ~done
+            if not bool(keep.any()):
+                break
+            active, thresh, bn2, rr = active[keep], thresh[keep], bn2[keep], rr[keep]
+            sa, res, p, xa = sa[:, keep], res[:, keep], p[:, keep], xa[:, keep]
+        ap = torch.addcmul(p, sa, gmul(sa * p), value=-1)
+        pap = torch.linalg.vecdot(p, ap, dim=0)
+        if bool((pap <= 0).any()):
+            raise SingularSystemError(
+                "the interreflection system is singular or indefinite (conjugate-gradient breakdown, "
+                f"p·Ap = {float(pap.min()):.3g}): reflectance 1 in a closed scene, or form-factor rows "
+                "summing to more than 1?"
+            )
+        alpha = rr / pap
+        xa.addcmul_(p, alpha)
+        res.addcmul_(ap, alpha, value=-1)
+        rr_new = torch.linalg.vecdot(res, res, dim=0)
+        p.mul_(rr_new / rr).add_(res)
+        rr = rr_new
+        it += 1
+    stats.iterations = max(stats.iterations, it)
+    stats.residual = max(stats.residual, worst)
+    if worst > tol:
+        stats.converged = False
+    return x
+
+
+def neumann_block(
+    f: Tensor | Callable[[Tensor], Tensor], areas: Tensor, r: Tensor, b: Tensor, transpose: bool, tol: float,
+    max_iter: int, stats: Stats,
+) -> Tensor:
+    """``x ← b + F R x`` (or ``b + R Fᵀ x``) until ``‖x_{k+1} − x_k‖ ≤ tol ‖b‖`` per column (area-weighted).
+
+    ``f`` is a matrix, or a callable that applies ``F`` (``Fᵀ`` when ``transpose``) to ``[F, N]`` columns.
+    """
+    weight = areas.sqrt()[:, None]
+    op = f if callable(f) else None
+    if transpose:
+        weight = 1 / weight
+        if op is None:
+            ft = f.mT if f.layout == torch.strided else f.t().to_sparse_csr()
+    dense = op is None and f.layout == torch.strided
+    w2 = weight * weight
+    x = b.clone()
+    bnorm2 = torch.linalg.vecdot(b, b * w2, dim=0)
+    active = torch.nonzero(bnorm2 > 0).squeeze(1)
+    if active.numel() == 0:
+        return x
+    thresh = (tol * tol) * bnorm2[active]
+    bn2 = bnorm2[active]
+    ra, ba, xa = r[:, active], b[:, active], x[:, active]
+    it = 0
+    worst = 0.0
+    d2 = bn2
+    while True:
+        if it < max_iter:
+            if op is not None:
+                y = torch.addcmul(ba, ra, op(xa)) if transpose else ba + op(ra * xa)
+            elif transpose:
+                y = torch.addcmul(ba, ra, ft @ xa)
+            elif dense:
+                y = torch.addmm(ba, f, ra * xa)
+            else:
+                y = ba + f @ (ra * xa)
+            d = y - xa
+            d2 = torch.linalg.vecdot(d, d * w2, dim=0)
+            xa = y
+            it += 1
+            done = d2 <= thresh
+        else:
+            done = torch.ones(active.numel(), dtype=torch.bool, device=b.device)
+        if bool(done.any()):
+            x[:, active[done]] = xa[:, done]
+            worst = max(worst, float((d2[done] / bn2[done]).max().sqrt()))
+            keep = ~done
+            if not bool(keep.any()):
+                break
+            active, thresh, bn2 = active[keep], thresh[keep], bn2[keep]
+            ra, ba, xa, d2 = ra[:, keep], ba[:, keep], xa[:, keep], d2[keep]
+    stats.iterations = max(stats.iterations, it)
+    stats.residual = max(stats.residual, worst)
+    if worst > tol:
+        stats.converged = False
+    return x
