@@ -7,6 +7,7 @@ import pytest
 import torch
 
 import torch_interreflect as ti
+from tests.oracles import HOWELL_C16, reference_tolerance
 from torch_interreflect.formfactors import point_polygon_factor
 
 
@@ -56,14 +57,9 @@ def c11(a, b, c):
     )
 
 
-# DESIGN.md's table: (angle, value); the reference has 6-7 significant digits, so the tolerance is the larger
+# DESIGN.md's table (tests/oracles.py); the reference has 6-7 significant digits, so the tolerance is the larger
 # of the requested relative accuracy and half a unit in the reference's last digit.
-HOWELL_C16 = [(30, 0.619028), (45, 0.483348), (60, 0.370905), (90, 0.2000438), (120, 0.086615), (150, 0.021345)]
-
-
-def tolerance(ref, rel):
-    digits = len(f"{ref:.7g}".split(".")[1].rstrip("0")) if "." in f"{ref:.7g}" else 0
-    return max(rel * ref, 0.5 * 10.0**-digits)
+tolerance = reference_tolerance
 
 
 @pytest.mark.parametrize(("angle", "ref"), HOWELL_C16)

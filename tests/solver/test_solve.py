@@ -8,6 +8,7 @@ import warnings
 import pytest
 import torch
 
+from tests.oracles import random_reciprocal
 from torch_interreflect import FormFactors
 from torch_interreflect.errors import ConvergenceWarning, ShapeError, SingularSystemError, ValueRangeError
 from torch_interreflect.solver import SolveInfo, radiance, solve
@@ -27,18 +28,6 @@ def sphere(n: int, dtype: torch.dtype = F64, seed: int = 0) -> FormFactors:
 def two_facets(f12: float, a1: float, a2: float, dtype: torch.dtype = F64) -> FormFactors:
     f21 = a1 * f12 / a2
     return FormFactors(torch.tensor([[0.0, f12], [f21, 0.0]], dtype=dtype), torch.tensor([a1, a2], dtype=dtype))
-
-
-def random_reciprocal(n: int, scale: float = 0.9, dtype: torch.dtype = F64, seed: int = 0) -> FormFactors:
-    """Random symmetric S, F = S / A (reciprocal), scaled so the largest row sum is ``scale``."""
-    g = torch.Generator().manual_seed(seed)
-    s = torch.rand(n, n, generator=g, dtype=F64)
-    s = s + s.T
-    s.fill_diagonal_(0)
-    areas = torch.rand(n, generator=g, dtype=F64) + 0.5
-    f = s / areas[:, None]
-    f = f / f.sum(1).max() * scale
-    return FormFactors(f.to(dtype), areas.to(dtype))
 
 
 def closed_ring(n: int, dtype: torch.dtype = F64, seed: int = 0) -> FormFactors:

@@ -8,22 +8,13 @@ import pytest
 import torch
 from torch.autograd import gradcheck, gradgradcheck
 
+from tests.oracles import random_reciprocal
 from torch_interreflect import FormFactors
 from torch_interreflect.solver import solve
 
 F64 = torch.float64
 METHODS = ["dense", "cg", "neumann"]
 TOL = 1e-13  # iterative methods: tight enough for finite differences
-
-
-def random_reciprocal(n: int, scale: float = 0.9, seed: int = 0) -> FormFactors:
-    g = torch.Generator().manual_seed(seed)
-    s = torch.rand(n, n, generator=g, dtype=F64)
-    s = s + s.T
-    s.fill_diagonal_(0)
-    areas = torch.rand(n, generator=g, dtype=F64) + 0.5
-    f = s / areas[:, None]
-    return FormFactors(f / f.sum(1).max() * scale, areas)
 
 
 def direct(f: torch.Tensor, r: torch.Tensor, e0: torch.Tensor) -> torch.Tensor:

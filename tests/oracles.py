@@ -1,0 +1,43 @@
+"""Shared oracles for the tests: exact reference values and small systems with known structure.
+
+Howell's catalogue of configuration factors (DESIGN.md §2) and reciprocal form-factor matrices built so that
+``A_i F_ij = A_j F_ji`` holds exactly. One copy each; test modules import from here (``from tests.oracles
+import ...``) or use the fixtures of ``conftest.py``.
+"""
+
+from __future__ import annotations
+
+import torch
+
+from torch_interreflect import FormFactors
+
+F64 = torch.float64
+
+#: Howell C-16: unit squares sharing an edge at an angle (degrees) → F. 6–7 significant digits.
+HOWELL_C16 = [(30, 0.619028), (45, 0.483348), (60, 0.370905), (90, 0.2000438), (120, 0.086615), (150, 0.021345)]
+#: Howell C-14: perpendicular unit squares sharing an edge (the 90° row of C-16), and l = 1, w = 1 → h = 2.
+HOWELL_C14_SQUARES = 0.2000438
+HOWELL_C14_L1_W1_H2 = 0.2328526
+#: Howell C-11: directly opposed unit squares at a gap → F.
+HOWELL_C11 = [(1.0, 0.1998249), (0.5, 0.4152533), (2.0, 0.0685896)]
+#: A differential area under the centre of a unit square at height 1.
+POINT_UNDER_SQUARE = 0.2394565
+
+
+def reference_tolerance(ref: float, rel: float) -> float:
+    """The larger of a relative accuracy and half a unit in the last digit the reference gives."""
+    text = f"{ref:.7g}"
+    digits = len(text.split(".")[1].rstrip("0")) if "." in text else 0
+    return max(rel * ref, 0.5 * 10.0**-digits)
+
+
+def random_reciprocal(n: int, scale: float = 0.9, dtype: torch.dtype = F64, seed: int = 0) -> FormFactors:
+    """Random symmetric ``S``, ``F = S / A`` (reciprocal), scaled so that the largest row sum is ``scale``."""
+    g = torch.Generator().manual_seed(seed)
+    s = torch.rand(n, n, generator=g, dtype=F64)
+    s = s + s.T
+    s.fill_diagonal_(0)
+    areas = torch.rand(n, generator=g, dtype=F64) + 0.5
+    f = s / areas[:, None]
+    f = f / f.sum(1).max() * scale
+    return FormFactors(f.to(dtype), areas.to(dtype))
