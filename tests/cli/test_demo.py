@@ -51,7 +51,7 @@ def _recompute(patch: str, illuminant: str, bounces: int) -> tuple[np.ndarray, n
 @pytest.mark.parametrize("patch, illuminant, bounces", [("red", "D50", 2), ("grey", "incandescent (A)", 3),
                                                         ("cyan", "D50", 4)])
 def test_demo_table_equals_an_independent_recomputation(demo, patch, illuminant, bounces) -> None:
-    out, res = demo
+    out, _ = demo
     v = json.loads((out / "results.json").read_text())["table"]["45"][illuminant][patch][str(bounces)]
     hinge, overall = _recompute(patch, illuminant, bounces)  # agree to 2.3e-7 at most (measured)
     np.testing.assert_allclose(v["hinge_column_%"], hinge, rtol=7e-7)
