@@ -30,26 +30,26 @@ test: $(STAMP) lint
 	$(BIN)/python -m pytest -q -n 2 --doctest-modules torch_interreflect tests
 
 bench-formfactors: $(STAMP)
-	$(BIN)/python benchmarks/formfactors.py --quick
+	$(BIN)/python -m benchmarks.formfactors --quick
 
 bench-hierarchical: $(STAMP)
-	$(BIN)/python benchmarks/hierarchical.py
+	$(BIN)/python -m benchmarks.hierarchical
 
 bench-hierarchical-quick: $(STAMP)
-	$(BIN)/python benchmarks/hierarchical.py --quick
+	$(BIN)/python -m benchmarks.hierarchical --quick
 
 bench-solver: $(STAMP)
-	$(BIN)/python benchmarks/solver.py
+	$(BIN)/python -m benchmarks.solver
 
 bench-accuracy: $(STAMP)
-	$(BIN)/python benchmarks/accuracy.py --quick
+	$(BIN)/python -m benchmarks.accuracy --quick
 
 bench-install: $(STAMP)
 	command -v apt-get >/dev/null && (apt-get update -qq && apt-get install -y -qq libllvm19) || true
 	$(BIN)/python -m pip install -q -e '.[dev,bench]'
 
 bench-speed: bench-install
-	$(BIN)/python benchmarks/speed_vs_error.py --quick
+	$(BIN)/python -m benchmarks.speed_vs_error --quick
 
 bench: bench-formfactors bench-solver bench-speed bench-accuracy bench-hierarchical-quick
 

@@ -4,22 +4,20 @@ Each configuration runs in a fresh subprocess so that its peak resident memory (
 Scenes: the paper's 45° V-groove (no facet can block another: no rays) and the Cornell box with its two
 blocks (occlusion by ray casting), each with occlusion as chosen by ``"auto"`` and forced the other way.
 
-    python benchmarks/formfactors.py            # ~100, ~1,000 and ~5,000 facets
-    python benchmarks/formfactors.py --quick    # ~100 and ~1,000 facets
+    python -m benchmarks.formfactors            # ~100, ~1,000 and ~5,000 facets
+    python -m benchmarks.formfactors --quick    # ~100 and ~1,000 facets
 """
 
 from __future__ import annotations
 
 import argparse
 import json
-import platform
-import resource
-import subprocess
-import sys
 import time
-from pathlib import Path
 
-RESULTS = Path(__file__).parent / "results"
+from benchmarks._common import RESULTS
+from benchmarks._common.memory import peak_rss_mb
+from benchmarks._common.report import machine, write_lines
+from benchmarks._common.workers import run_worker
 
 # (scene, size parameter, occlusion): v-groove divisions per plate edge, Cornell box subdivision
 CONFIGS = {
@@ -48,7 +46,7 @@ def worker(spec: dict) -> dict:
         "facets": scene.num_facets, "seconds": dt, "pairs": i["pairs"], "points": i["points"],
         "occluded_pairs": i["occluded_pairs"], "rays": i["rays"], "quadrature_s": i["seconds_quadrature"],
         "visibility_s": i["seconds_visibility"], "layout": i["layout"],
-        "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+        "peak_rss_mb": peak_rss_mb(),
     }
 
 
@@ -66,21 +64,20 @@ def main() -> None:
     for size in sizes:
         for scene, k, occ in CONFIGS[size]:
             spec = {"scene": scene, "k": k, "occlusion": occ, "threads": args.threads}
-            out = subprocess.run([sys.executable, __file__, "--worker", json.dumps(spec)], capture_output=True,
-                                 text=True, check=True)
-            res = json.loads(out.stdout.strip().splitlines()[-1])
+            res = run_worker("benchmarks.formfactors", ["--worker", json.dumps(spec)])
+            if "error" in res:
+                raise RuntimeError(f"{spec}: {res['error']}")
             res.update(scene=scene, occlusion=occ)
             rows.append(res)
             print(f"{scene:12s} F={res['facets']:5d} occlusion={occ!s:5s}: {res['seconds']:7.2f} s "
                   f"(quadrature {res['quadrature_s']:.2f} s, visibility {res['visibility_s']:.2f} s), "
                   f"{res['pairs']} pairs, {res['points']} points, {res['rays']} rays, "
                   f"peak RSS {res['peak_rss_mb']:.0f} MB", flush=True)
-    RESULTS.mkdir(exist_ok=True)
     lines = [
         "# Form-factor kernel: build time and peak memory",
         "",
-        f"`python benchmarks/formfactors.py`, {args.threads} torch threads, {platform.processor() or 'CPU'}, "
-        f"Python {platform.python_version()}. Default settings (`tol=1e-6`, 3×3 visibility samples per facet).",
+        f"`python -m benchmarks.formfactors`, {args.threads} torch threads, {machine()}. "
+        "Default settings (`tol=1e-6`, 3×3 visibility samples per facet).",
         "Peak RSS is the whole process (Python, torch and the scene included).",
         "",
         "| scene | facets | occlusion | pairs | quadrature points | occluded pairs | rays | quadrature s | "
@@ -93,8 +90,7 @@ def main() -> None:
             f"{r['occluded_pairs']} | {r['rays']} | {r['quadrature_s']:.2f} | {r['visibility_s']:.2f} | "
             f"{r['seconds']:.2f} | {r['peak_rss_mb']:.0f} |"
         )
-    (RESULTS / "formfactors.md").write_text("\n".join(lines) + "\n")
-    print(f"wrote {RESULTS / 'formfactors.md'}")
+    write_lines(RESULTS / "formfactors.md", lines)
 
 
 if __name__ == "__main__":

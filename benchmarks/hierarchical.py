@@ -10,23 +10,24 @@
 Every point runs in a fresh subprocess, so its peak resident memory (``VmHWM``) is its own. Results go to
 ``benchmarks/results/hierarchical{,_quick}.{md,png}``.
 
-    python benchmarks/hierarchical.py            # full run (the 50k-facet points take a few minutes each)
-    python benchmarks/hierarchical.py --quick    # small scenes only (~2 min)
+    python -m benchmarks.hierarchical            # full run (the 50k-facet points take a few minutes each)
+    python -m benchmarks.hierarchical --quick    # small scenes only (~2 min)
 """
 
 from __future__ import annotations
 
 import argparse
 import json
-import os
 import platform
-import subprocess
-import sys
 import tempfile
 import time
 from pathlib import Path
 
-RESULTS = Path(__file__).parent / "results"
+from benchmarks._common import RESULTS
+from benchmarks._common.memory import peak_rss_mb
+from benchmarks._common.report import write_lines
+from benchmarks._common.workers import run_worker
+
 ETAS = (0.3, 0.5, 0.7)
 # scene -> size parameters: Cornell box subdivision, room facets per metre
 ERROR_SIZES = {"cornell_box": (8, 17), "room": (3.3, 7.2)}
@@ -34,16 +35,6 @@ SCALE_SIZES = {"cornell_box": (8, 17, 34, 54), "room": (3.3, 7.2, 14.3, 22.7)}
 QUICK_ERROR = {"cornell_box": (6,), "room": (2.5,)}
 QUICK_SCALE = {"cornell_box": (4, 8), "room": (2.0, 3.3)}
 LIGHT = {"cornell_box": "light", "room": "lamp"}
-
-
-def peak_rss_mb() -> float:
-    with open("/proc/self/status") as f:
-        for line in f:
-            if line.startswith("VmHWM:"):
-                return int(line.split()[1]) / 1024
-    import resource
-
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 
 
 def build(scene: str, k: float):
@@ -135,12 +126,7 @@ def worker_hier(spec: dict) -> dict:
 
 
 def run(spec: dict) -> dict:
-    env = dict(os.environ, OMP_WAIT_POLICY="PASSIVE")
-    out = subprocess.run([sys.executable, __file__, "--worker", json.dumps(spec)], capture_output=True, text=True,
-                         env=env)
-    if out.returncode != 0:
-        return {"error": (out.stderr.strip().splitlines() or ["?"])[-1], "returncode": out.returncode}
-    return json.loads(out.stdout.strip().splitlines()[-1])
+    return run_worker("benchmarks.hierarchical", ["--worker", json.dumps(spec)])
 
 
 def main() -> None:
@@ -187,7 +173,7 @@ def write(err_rows: list, scale_rows: list, args: argparse.Namespace) -> None:
     lines = [
         "# Hierarchical form factors: error against the dense kernel, and scaling",
         "",
-        f"`python benchmarks/hierarchical.py{' --quick' if args.quick else ''}`, {args.threads} torch threads, CPU "
+        f"`python -m benchmarks.hierarchical{' --quick' if args.quick else ''}`, {args.threads} torch threads, CPU "
         f"({platform.processor() or platform.machine()}), Python {platform.python_version()}, float64. "
         "Default settings otherwise (`leaf_size=16`, `order=1`, `quadrature_tol=1e-6`, occlusion `auto`). Every point "
         "is its own subprocess; peak RSS is that process's `VmHWM` (Python, torch and the scene included).",
@@ -235,7 +221,7 @@ def write(err_rows: list, scale_rows: list, args: argparse.Namespace) -> None:
             f"{h['iterations']} | {h['peak_rss_mb']:.0f} | {h['bytes'] / 2**20:.0f} | {h['near_nnz']} | "
             f"{h['far_blocks']} | {h['rays']} |"
         )
-    (RESULTS / f"hierarchical{suffix}.md").write_text("\n".join(lines) + "\n")
+    write_lines(RESULTS / f"hierarchical{suffix}.md", lines)
 
     fig, axes = plt.subplots(1, 2, figsize=(11, 4.2))
     for scene, marker in (("cornell_box", "o"), ("room", "s")):

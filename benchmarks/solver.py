@@ -1,7 +1,7 @@
 """Benchmark of :func:`torch_interreflect.solve.solve`: dense LU vs conjugate gradients vs Neumann vs the paper's
 literal block formulation.
 
-Run ``python benchmarks/solver.py`` (``--quick`` for a reduced run). Writes ``benchmarks/results/solver.md``
+Run ``python -m benchmarks.solver`` (``--quick`` for a reduced run). Writes ``benchmarks/results/solver.md``
 and ``benchmarks/results/solver.png``.
 
 Form factors: a closed box room (cells on the six inner walls, box sides proportional to the cell counts, so
@@ -25,17 +25,19 @@ import argparse
 import json
 import math
 import os
-import resource
 import shutil
-import subprocess
-import sys
 import tempfile
 import time
 from pathlib import Path
 
 import torch
 
-RESULTS = Path(__file__).resolve().parent / "results"
+from benchmarks._common import RESULTS
+from benchmarks._common.memory import peak_since, reset_peak
+from benchmarks._common.report import write_lines
+from benchmarks._common.timing import best_time
+from benchmarks._common.workers import run_worker
+
 BOXES = {256: (4, 8, 8), 1024: (8, 16, 16), 4096: (16, 32, 32)}
 L = 31
 DTYPE = torch.float32
@@ -74,52 +76,18 @@ def box_room(nx: int, ny: int, nz: int) -> tuple[torch.Tensor, torch.Tensor]:
     return w / areas[:, None], areas
 
 
-def _reset_peak() -> int:
-    """Reset the process's resident-set high-water mark (Linux ``clear_refs`` 5); return the current RSS in KiB."""
-    try:
-        Path("/proc/self/clear_refs").write_text("5")
-        return _proc_status("VmRSS")
-    except OSError:
-        return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-
-
-def _peak_since(base: int) -> float:
-    """Growth of the high-water mark (MiB) since :func:`_reset_peak` returned ``base``."""
-    try:
-        hwm = _proc_status("VmHWM")
-    except OSError:
-        hwm = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-    return max(0, hwm - base) / 1024
-
-
-def _proc_status(field: str) -> int:
-    for line in Path("/proc/self/status").read_text().splitlines():
-        if line.startswith(field + ":"):
-            return int(line.split()[1])
-    raise OSError(field)
-
-
 def _cols(t: torch.Tensor) -> torch.Tensor:
     return t.movedim(-2, 0).reshape(t.shape[-2], -1)
-
-
-def _time(fn, reps: int) -> float:
-    best = math.inf
-    for _ in range(max(reps, 0)):
-        t0 = time.perf_counter()
-        fn()
-        best = min(best, time.perf_counter() - t0)
-    return best
 
 
 def worker(cfg: dict) -> dict:
     """One configuration, run in a fresh process so that its memory high-water mark is its own."""
     import warnings
 
-    from torch_interreflect._solvers import Stats, get_plan, solve_columns
-
     from torch_interreflect import FormFactors
     from torch_interreflect.solver import solve
+    from torch_interreflect.solver.columns import solve_columns
+    from torch_interreflect.solver.plan import Stats, get_plan
 
     nf, ncol, rmax, method = cfg["F"], cfg["N"], cfg["rmax"], cfg["method"]
     torch.manual_seed(0)
@@ -143,10 +111,10 @@ def worker(cfg: dict) -> dict:
                 outs.append((bk.reshape(-1) / rext).reshape(L, nf).T)
             return torch.stack(outs)
 
-        rss0 = _reset_peak()
+        rss0 = reset_peak()
         fwd()
-        out["peak_mib"] = _peak_since(rss0)
-        out["fwd_s"] = _time(fwd, reps)
+        out["peak_mib"] = peak_since(rss0)
+        out["fwd_s"] = best_time(fwd, reps)
         out["fwdbwd_s"] = None
         out["flops"] = b * (2 / 3) * (nf * L) ** 3
         return out
@@ -164,15 +132,15 @@ def worker(cfg: dict) -> dict:
     get_plan(ff)  # per-scene, cached: not part of the solve
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        rss0 = _reset_peak()
+        rss0 = reset_peak()
         t_fb = timed(fwdbwd)  # first run: memory high-water mark of forward+backward
-        out["peak_mib"] = _peak_since(rss0)
+        out["peak_mib"] = peak_since(rss0)
         t0 = time.perf_counter()
         _, info = solve(ff, r, e0, method=method, tol=TOL, return_info=True)
         t_f = time.perf_counter() - t0
         out["iterations"] = info.iterations
-        out["fwd_s"] = min(t_f, _time(lambda: solve(ff, r, e0, method=method, tol=TOL), reps - 1))
-        out["fwdbwd_s"] = min(t_fb, _time(fwdbwd, reps - 1))
+        out["fwd_s"] = min(t_f, best_time(lambda: solve(ff, r, e0, method=method, tol=TOL), reps - 1))
+        out["fwdbwd_s"] = min(t_fb, best_time(fwdbwd, reps - 1))
         # adjoint iterations (the backward solve), counted on the private core with a random upstream gradient
         st = Stats()
         if method != "dense":
@@ -191,7 +159,7 @@ def worker(cfg: dict) -> dict:
         out["adjoint_iterations"] = st.iterations
     g = ff.matrix
     x = torch.rand(nf, ncol, dtype=DTYPE)
-    out["mm_s"] = _time(lambda: g @ x, 5)
+    out["mm_s"] = best_time(lambda: g @ x, 5)
     mm_flops = 2 * nf * nf * ncol
     if method == "dense":
         out["flops"] = ncol * (2 / 3) * nf**3 + 2 * mm_flops
@@ -218,9 +186,9 @@ def estimate_seconds(nf: int, ncol: int, rmax: float, method: str, rates: dict) 
 
 def measure_rates() -> dict:
     a = torch.rand(2048, 2048, dtype=DTYPE)
-    gemm = 2 * 2048**3 / _time(lambda: a @ a, 3)
+    gemm = 2 * 2048**3 / best_time(lambda: a @ a, 3)
     m = torch.rand(8, 512, 512, dtype=DTYPE) + 512 * torch.eye(512, dtype=DTYPE)
-    lu = 8 * (2 / 3) * 512**3 / _time(lambda: torch.linalg.lu_factor_ex(m), 3)
+    lu = 8 * (2 / 3) * 512**3 / best_time(lambda: torch.linalg.lu_factor_ex(m), 3)
     return {"gemm": gemm, "lu": lu}
 
 
@@ -232,7 +200,9 @@ def calibrate() -> None:
     import warnings
 
     from torch_interreflect import FormFactors
-    from torch_interreflect.solver import _choose_method, get_plan, solve
+    from torch_interreflect.solver import solve
+    from torch_interreflect.solver.method import choose_method
+    from torch_interreflect.solver.plan import get_plan
 
     print("| F | N | distinct K | dense ms | cg ms | cg iters | faster | auto picks |")
     print("|---|---|---|---|---|---|---|---|")
@@ -249,10 +219,10 @@ def calibrate() -> None:
                 e0 = torch.rand(nf, ncol, dtype=torch.float64)
                 with warnings.catch_warnings():
                     warnings.simplefilter("ignore")
-                    td = _time(lambda ff=ff, r=r, e0=e0: solve(ff, r, e0, method="dense"), 3)
-                    tc = _time(lambda ff=ff, r=r, e0=e0: solve(ff, r, e0, method="cg"), 3)
+                    td = best_time(lambda ff=ff, r=r, e0=e0: solve(ff, r, e0, method="dense"), 3)
+                    tc = best_time(lambda ff=ff, r=r, e0=e0: solve(ff, r, e0, method="cg"), 3)
                     _, info = solve(ff, r, e0, method="cg", return_info=True)
-                pick = _choose_method(get_plan(ff), r, 1e-6)
+                pick = choose_method(get_plan(ff), r, 1e-6)
                 k = 1 if grey else ncol
                 best = "dense" if td < tc else "cg"
                 it = info.iterations
@@ -317,19 +287,12 @@ def main() -> None:
                         rows.append({**cfg, "skipped": why})
                         print(f"skip {cfg}: {why}")
                         continue
-                    p = subprocess.run(
-                        [sys.executable, __file__, "--worker", json.dumps(cfg)],
-                        capture_output=True,
-                        text=True,
-                        env=env,
-                        check=False,
-                    )
-                    if p.returncode != 0:
+                    res = run_worker("benchmarks.solver", ["--worker", json.dumps(cfg)], env=env)
+                    if "error" in res:
                         cfg.pop("path")
-                        rows.append({**cfg, "skipped": "failed: " + p.stderr.strip().splitlines()[-1][:80]})
-                        print(p.stderr[-2000:])
+                        rows.append({**cfg, "skipped": "failed: " + str(res["error"])[:80]})
+                        print(res["error"])
                         continue
-                    res = json.loads(p.stdout.strip().splitlines()[-1])
                     res.pop("path", None)
                     rows.append(res)
                     print(json.dumps(res))
@@ -352,7 +315,7 @@ def write(rows: list[dict], rates: dict, quick: bool) -> None:
     lines = [
         "# Solver benchmark",
         "",
-        f"`python benchmarks/solver.py{' --quick' if quick else ''}`; {DTYPE}, tol {TOL}, "
+        f"`python -m benchmarks.solver{' --quick' if quick else ''}`; {DTYPE}, tol {TOL}, "
         f"{torch.get_num_threads()} threads. Matmul peak measured in the same run (2048³ GEMM): "
         f"**{rates['gemm'] / 1e9:.1f} GFLOP/s**; batched LU 512: {rates['lu'] / 1e9:.1f} GFLOP/s.",
         "",
@@ -403,7 +366,7 @@ def write(rows: list[dict], rates: dict, quick: bool) -> None:
             f"{budget:.3f} s: **{cg['fwdbwd_s'] / budget:.2f}×** (target ≤ 2×: "
             f"{'reached' if cg['fwdbwd_s'] / budget <= 2 else 'NOT reached'})."
         )
-    (RESULTS / "solver.md").write_text("\n".join(lines) + "\n")
+    write_lines(RESULTS / "solver.md", lines)
     print("\n".join(lines))
     plot(rows)
 

@@ -16,8 +16,8 @@ A spectral variant (31 wavelengths, camera RGB of a Nikon D5100) compares agains
 
 Usage::
 
-    .venv/bin/python benchmarks/speed_vs_error.py --quick     # make bench: a subset, under 10 minutes
-    .venv/bin/python benchmarks/speed_vs_error.py             # the full run (about an hour on 2 cores)
+    .venv/bin/python -m benchmarks.speed_vs_error --quick     # make bench: a subset, under 10 minutes
+    .venv/bin/python -m benchmarks.speed_vs_error             # the full run (about an hour on 2 cores)
 
 Writes ``benchmarks/results/speed_vs_error[_quick].md`` and PNG plots beside it. Needs the cached references;
 Mitsuba rows need the ``bench`` extra (they are skipped, with a note, when Mitsuba is not installed).
@@ -30,10 +30,8 @@ import json
 import math
 import os
 import platform
-import subprocess
-import sys
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -46,23 +44,14 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 import torch
 
-HERE = Path(__file__).resolve().parent
-sys.path.insert(0, str(HERE.parent))
-sys.path.insert(0, str(HERE))
-
-import mitsuba_ref as mr  # noqa: E402
-
-import torch_interreflect as ti  # noqa: E402
-
-RESULTS = HERE / "results"
-DTYPE = torch.float64
-
-
-def _solve_fn() -> Callable[..., Any]:
-    solve = getattr(ti, "solve", None)
-    if not callable(solve):  # before the package exports it, the submodule shadows the name
-        from torch_interreflect.solver import solve
-    return solve
+import torch_interreflect as ti
+from benchmarks._common import RESULTS
+from benchmarks._common import mitsuba as mr
+from benchmarks._common.memory import mem_available, status_mb
+from benchmarks._common.ours import DTYPE, direct_light, solve
+from benchmarks._common.report import debias, fmt_e, fmt_t, loadavg, rel_errors, write_lines
+from benchmarks._common.timing import timed
+from benchmarks._common.workers import run_worker
 
 
 # ---------------------------------------------------------------------------------------------- records
@@ -83,33 +72,6 @@ class Row:
         return self.kernel_s + self.solve_s
 
 
-def rel_errors(values: np.ndarray, ref: np.ndarray) -> tuple[float, float]:
-    rel = (np.asarray(values, np.float64).reshape(ref.shape) - ref) / np.abs(ref)
-    return float(np.sqrt(np.mean(rel**2))), float(np.abs(rel).max())
-
-
-def debias(rmse: float, noise: float) -> float:
-    """Error with the reference's own noise taken out in quadrature (0 when below it)."""
-    return math.sqrt(max(rmse**2 - noise**2, 0.0))
-
-
-def timed(fn: Callable[[], Any], budget: float = 6.0, reps: int = 3) -> tuple[Any, float]:
-    """Run ``fn`` up to ``reps`` times while the runs so far took less than ``budget`` seconds; keep the
-    fastest time (the machine is shared: the minimum is the least disturbed run)."""
-    best = math.inf
-    spent = 0.0
-    out = None
-    for _ in range(reps):
-        t0 = time.perf_counter()
-        out = fn()
-        dt = time.perf_counter() - t0
-        best = min(best, dt)
-        spent += dt
-        if spent >= budget:
-            break
-    return out, best
-
-
 # ---------------------------------------------------------------------------------------------- ours
 #: Kernels (form factors and direct light) by geometry, light and settings: the r = 0.9 and r = 0.2
 #: references of a scene share them, so each is computed (and timed) once.
@@ -126,14 +88,8 @@ class Ours:
         self.scene = mr.build_scene(self.spec)
         self.r = float(self.spec["reflectance"])
         self.light = self.spec["light"]
-        self.solve = _solve_fn()
+        self.solve = solve
         self._geometry = json.dumps([self.spec["builder"], self.spec["kwargs"], self.light], sort_keys=True)
-
-    def _direct(self, fine: Any, K: Any) -> torch.Tensor:
-        if self.light["type"] == "directional":
-            d = torch.tensor(self.light["direction"], dtype=DTYPE)
-            return ti.lights.directional(fine, d, torch.full((1,), float(self.light["irradiance"]), dtype=DTYPE))
-        return ti.lights.sky(fine, K, torch.full((1,), float(self.light["radiance"]), dtype=DTYPE))
 
     def kernel(self, k: int, method: str = "quadrature", tol: float = 1e-6, samples: int = 0, seed: int = 0):
         key = (self._geometry, k, method, tol, samples, seed)
@@ -146,7 +102,7 @@ class Ours:
                 else:
                     g = torch.Generator().manual_seed(seed)
                     K = ti.form_factors(fine, method="monte_carlo", samples=samples, generator=g, progress=False)
-                E0 = self._direct(fine, K)
+                E0 = direct_light(fine, K, self.light)
                 return fine, parent, K, E0
 
             (fine, parent, K, E0), dt = timed(run, budget=10.0, reps=2)
@@ -274,22 +230,9 @@ def make_spectral_reference(target: float = 2.5e-4, max_paths: float = 4e8) -> d
     s = spectral_setup()
     m = spectral_mitsuba(s, sampler="multijitter")
     F = m.num_facets
-    pilot = 16384
     t0 = time.perf_counter()
-    pa, pb = m.render(pilot, seed=101), m.render(pilot, seed=102)
-    mean = 0.5 * (pa.irradiance + pb.irradiance)
-    rms_pilot = float(np.sqrt(np.mean(((pa.irradiance - pb.irradiance) / mean) ** 2) / 2))
-    spp = int(pilot * (rms_pilot / (math.sqrt(2) * target)) ** 2)
-    spp = max(pilot, min(spp, int(max_paths / (2 * F))))
-
-    def extend(r0: mr.RenderResult, seed: int) -> mr.RenderResult:
-        if spp <= r0.spp:
-            return r0
-        r1 = m.render(spp - r0.spp, seed=seed)
-        n0, n1 = r0.spp, r1.spp
-        return mr.RenderResult((n0 * r0.irradiance + n1 * r1.irradiance) / (n0 + n1), r0.stderr, n0 + n1, 0.0)
-
-    a, b = extend(pa, 1), extend(pb, 2)
+    # two independent renders, each a pilot extended by more paths (pooled: mean and its standard error)
+    a, b, _ = mr.pilot_and_extend(m.render, F, target=target, max_paths=max_paths)
     e = 0.5 * (a.irradiance + b.irradiance)
     half = 0.5 * np.abs(a.irradiance - b.irradiance)
     rms = float(np.sqrt(np.mean((half / e) ** 2)))
@@ -322,7 +265,6 @@ def make_spectral_reference(target: float = 2.5e-4, max_paths: float = 4e8) -> d
 
 def spectral_rows(ref: dict, spps: Sequence[int], ks: Sequence[int], with_mitsuba: bool) -> list[Row]:
     s = spectral_setup()
-    solve = _solve_fn()
     scene = s["scene"]
     target = ref["irradiance"]  # [F, 3]
     rows = []
@@ -370,21 +312,9 @@ def spectral_rows(ref: dict, spps: Sequence[int], ks: Sequence[int], with_mitsub
 
 
 # ---------------------------------------------------------------------------------------------- scaling
-def _vm(field: str) -> float:
-    """A field of /proc/self/status in MB (VmRSS: resident now, VmHWM: peak resident since exec)."""
-    try:
-        for line in Path("/proc/self/status").read_text().splitlines():
-            if line.startswith(field + ":"):
-                return float(line.split()[1]) / 1024.0
-    except OSError:
-        pass
-    return math.nan
-
-
 def _scaling_point(args: argparse.Namespace) -> None:
     """Child process: one scaling measurement, printed as JSON (peak RSS is per process)."""
     torch.set_grad_enabled(False)
-    solve = _solve_fn()
     d = torch.tensor([-math.cos(math.radians(22.5)), 0.0, -math.sin(math.radians(22.5))], dtype=DTYPE)
     # warm-up: first calls load the ray tracer and set up caches
     w = ti.scenes.v_groove(45.0, divisions=2, dtype=DTYPE)
@@ -396,16 +326,16 @@ def _scaling_point(args: argparse.Namespace) -> None:
     n = args.n
     scene = ti.scenes.v_groove(45.0, size=(0.09, 0.06), divisions=n, dtype=DTYPE)
     L, B = args.wavelengths, args.batch
-    base = _vm("VmRSS")
+    base = status_mb("VmRSS")
     t0 = time.perf_counter()
     K = ti.form_factors(scene, progress=False)
     E0 = ti.lights.directional(scene, d, torch.ones(L, dtype=DTYPE))
     t1 = time.perf_counter()
-    peak_kernel = _vm("VmHWM")
+    peak_kernel = status_mb("VmHWM")
     g = torch.Generator().manual_seed(0)
     refl = 0.2 + 0.7 * torch.rand(B, scene.num_facets, L, generator=g, dtype=DTYPE)
     (E, st) = timed(lambda: solve(K, refl, E0.expand(B, -1, -1)))
-    peak = _vm("VmHWM")
+    peak = status_mb("VmHWM")
     rec = {
         "facets": scene.num_facets,
         "wavelengths": L,
@@ -426,35 +356,19 @@ def _scaling_point(args: argparse.Namespace) -> None:
 BYTES_PER_PAIR = 55.0
 
 
-def _mem_available() -> float:
-    """MemAvailable from /proc/meminfo in bytes (inf where unknown)."""
-    try:
-        for line in Path("/proc/meminfo").read_text().splitlines():
-            if line.startswith("MemAvailable:"):
-                return float(line.split()[1]) * 1024.0
-    except OSError:
-        pass
-    return math.inf
-
-
 def scaling(points: Sequence[tuple[int, int, int]], timeout: float) -> list[dict]:
     out = []
     for n, L, B in points:
-        cmd = [sys.executable, __file__, "_scaling_point", "--n", str(n), "--wavelengths", str(L), "--batch", str(B)]
+        args = ["_scaling_point", "--n", str(n), "--wavelengths", str(L), "--batch", str(B)]
         t0 = time.perf_counter()
         need = BYTES_PER_PAIR * (2 * n * n) ** 2
-        if need > 0.95 * _mem_available():
-            rec = {"error": f"skipped: needs ~{need / 1e9:.0f} GB, {_mem_available() / 1e9:.0f} GB available"}
+        if need > 0.95 * mem_available():
+            rec = {"error": f"skipped: needs ~{need / 1e9:.0f} GB, {mem_available() / 1e9:.0f} GB available"}
             rec.update(n=n, request={"facets": 2 * n * n, "wavelengths": L, "batch": B}, wall_s=0.0)
             print("  scaling", rec, flush=True)
             out.append(rec)
             continue
-        try:
-            p = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout, check=False)
-            line = [s for s in p.stdout.splitlines() if s.startswith("{")]
-            rec = json.loads(line[-1]) if line else {"error": p.stderr.strip().splitlines()[-1:]}
-        except subprocess.TimeoutExpired:
-            rec = {"error": f"timed out after {timeout:.0f} s"}
+        rec = run_worker("benchmarks.speed_vs_error", args, timeout=timeout)
         rec.update(n=n, request={"facets": 2 * n * n, "wavelengths": L, "batch": B}, wall_s=time.perf_counter() - t0)
         print("  scaling", rec, flush=True)
         out.append(rec)
@@ -469,16 +383,6 @@ def fit_exponent(x: Sequence[float], y: Sequence[float]) -> float:
 
 
 # ---------------------------------------------------------------------------------------------- report
-def fmt_t(t: float) -> str:
-    if not math.isfinite(t):
-        return "–"
-    return f"{t * 1e3:.0f} ms" if t < 1 else f"{t:.2f} s" if t < 100 else f"{t:.0f} s"
-
-
-def fmt_e(e: float) -> str:
-    return f"{100 * e:.3f} %" if e < 0.01 else f"{100 * e:.2f} %"
-
-
 def table(rows: list[Row], mitsuba: list[tuple[float, float]], noise: float) -> list[str]:
     out = [
         "| method | setting | facets | rel. RMSE | max error | kernel | solve | total | Mitsuba at equal error "
@@ -725,13 +629,13 @@ def main(argv: Sequence[str] | None = None) -> None:
     # warm-up (imports, first-call overheads)
     w = ti.scenes.v_groove(45.0, divisions=2, dtype=DTYPE)
     E0w = ti.lights.directional(w, torch.tensor([0.0, 0.0, -1.0], dtype=DTYPE), torch.ones(1, dtype=DTYPE))
-    _solve_fn()(ti.form_factors(w), torch.full((w.num_facets,), 0.5, dtype=DTYPE), E0w)
+    solve(ti.form_factors(w), torch.full((w.num_facets,), 0.5, dtype=DTYPE), E0w)
 
     suffix = "_quick" if a.quick else ""
     md: list[str] = [
         f"# Speed against error{' (quick)' if a.quick else ''}",
         "",
-        f"Generated by `benchmarks/speed_vs_error.py{' --quick' if a.quick else ''}` on "
+        f"Generated by `python -m benchmarks.speed_vs_error{' --quick' if a.quick else ''}` on "
         f"{platform.node() or 'this machine'}"
         f" ({os.cpu_count()} CPUs, torch {torch.__version__}, {torch.get_num_threads()} threads"
         f"{', Mitsuba ' + _mitsuba_version() if with_mitsuba else ', Mitsuba not installed'}).",
@@ -746,7 +650,7 @@ def main(argv: Sequence[str] | None = None) -> None:
         "form-factor tol 1e-6 and solver tol 1e-6. Mitsuba: *kernel* = scene build, *solve* = rendering (kernels",
         "compiled beforehand). Our timings are the fastest of up to 3 runs (kernels: 2) while the runs take",
         "under 6 s (10 s) in all; a render under 2 s is repeated and timed the second time. Both use all cores",
-        f"(load average at the start: {_loadavg()}; the machine may be shared, which inflates single timings;",
+        f"(load average at the start: {loadavg()}; the machine may be shared, which inflates single timings;",
         f"OMP_WAIT_POLICY={os.environ.get('OMP_WAIT_POLICY')}: spinning OpenMP threads make torch 5-50x slower on"
         " a busy CPU).",
         "",
@@ -838,7 +742,8 @@ def main(argv: Sequence[str] | None = None) -> None:
             plot({SPECTRAL_NAME: srows}, RESULTS / f"speed_vs_error_spectral{suffix}.png", "spectral (camera RGB)")
             md += [f"![spectral](speed_vs_error_spectral{suffix}.png)", ""]
         else:
-            md += ["## Spectral", "", f"(no spectral reference: run `{Path(__file__).name} spectral-reference`)", ""]
+            md += ["## Spectral", "",
+                   "(no spectral reference: run `python -m benchmarks.speed_vs_error spectral-reference`)", ""]
 
     if not a.no_scaling:
         print("scaling", flush=True)
@@ -888,18 +793,8 @@ def main(argv: Sequence[str] | None = None) -> None:
         plot_scaling(recs, RESULTS / f"speed_vs_error_scaling{suffix}.png")
         md += ["", f"![scaling](speed_vs_error_scaling{suffix}.png)", ""]
 
-    md += [f"Total benchmark time: {time.perf_counter() - t_start:.0f} s; load average at the end: {_loadavg()}.", ""]
-    RESULTS.mkdir(exist_ok=True)
-    out = RESULTS / f"speed_vs_error{suffix}.md"
-    out.write_text("\n".join(md))
-    print(f"wrote {out}")
-
-
-def _loadavg() -> str:
-    try:
-        return " / ".join(f"{x:.1f}" for x in os.getloadavg())
-    except OSError:
-        return "?"
+    md += [f"Total benchmark time: {time.perf_counter() - t_start:.0f} s; load average at the end: {loadavg()}.", ""]
+    write_lines(RESULTS / f"speed_vs_error{suffix}.md", md)
 
 
 def _mitsuba_version() -> str:

@@ -3,16 +3,12 @@
 from __future__ import annotations
 
 import math
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-BENCH = Path(__file__).resolve().parents[1] / "benchmarks"
-sys.path.insert(0, str(BENCH))
-
-import mitsuba_ref as mr  # noqa: E402
+from benchmarks._common import mitsuba as mr
 
 
 def _square() -> tuple[np.ndarray, np.ndarray]:
@@ -34,8 +30,40 @@ def test_cached_references_match_their_scenes() -> None:
             assert mr.build_scene(st).num_facets == st["num_facets"]
 
 
+def test_pooled_render_combines_both_standard_errors() -> None:
+    # two renders of one quantity, 100 and 300 paths: the pooled mean weighs them by paths, and its standard error
+    # is that of the pooled mean, sqrt(n0² se0² + n1² se1²) / (n0 + n1) (not the first render's)
+    r0 = mr.RenderResult(np.array([1.0, 2.0]), np.array([0.2, 0.4]), 100, 1.0)
+    r1 = mr.RenderResult(np.array([3.0, 2.0]), np.array([0.1, 0.2]), 300, 2.0)
+    p = mr.pooled(r0, r1)
+    np.testing.assert_allclose(p.irradiance, [2.5, 2.0], rtol=1e-15)
+    np.testing.assert_allclose(p.stderr, np.sqrt([100**2 * 0.04 + 300**2 * 0.01, 100**2 * 0.16 + 300**2 * 0.04]) / 400,
+                               rtol=1e-15)
+    assert p.spp == 400 and p.seconds == 3.0
+    # iid samples: per-sample deviation s gives se = s / sqrt(n); pooling gives s / sqrt(n0 + n1)
+    s = 0.7
+    q = mr.pooled(mr.RenderResult(np.zeros(1), np.array([s / 10]), 100, 0.0),
+                  mr.RenderResult(np.zeros(1), np.array([s / 20]), 400, 0.0))
+    assert q.stderr[0] == pytest.approx(s / math.sqrt(500), rel=1e-14)
+
+
+def test_pilot_and_extend_extends_both_renders_with_pooled_errors() -> None:
+    calls = []
+
+    def render(spp: int, seed: int) -> mr.RenderResult:  # a fake renderer: noise 1/sqrt(spp), exact mean 1
+        calls.append((spp, seed))
+        rng = np.random.default_rng(seed)
+        return mr.RenderResult(1 + rng.normal(0, 1, 50) / math.sqrt(spp), np.full(50, 1 / math.sqrt(spp)), spp, 0.0)
+
+    a, b, rms_pilot = mr.pilot_and_extend(render, 50, target=1e-3, max_paths=1e12, pilot_spp=1000)
+    assert [c[1] for c in calls] == [101, 102, 1, 2]
+    n = calls[2][0] + 1000
+    assert a.spp == b.spp == n and n == pytest.approx(1000 * (rms_pilot / (math.sqrt(2) * 1e-3)) ** 2, rel=1e-3)
+    np.testing.assert_allclose(a.stderr, 1 / math.sqrt(n), rtol=1e-12)  # both runs' errors, pooled
+
+
 def test_time_at_error_interpolates_and_extrapolates() -> None:
-    from speed_vs_error import time_at_error
+    from benchmarks.speed_vs_error import time_at_error
 
     pts = [(0.04, 0.1), (0.02, 0.4), (0.01, 1.6)]
     assert time_at_error(pts, 0.02) == pytest.approx(0.4)
@@ -62,7 +90,7 @@ def test_mitsuba_perpendicular_squares_form_factor() -> None:
 
 
 def test_accuracy_benchmark_one_tiny_case(tmp_path: Path) -> None:
-    import accuracy as ab
+    from benchmarks import accuracy as ab
 
     ref = mr.load_reference("box_corner_sun_r2")
     p = ab.problem(ref)

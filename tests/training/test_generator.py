@@ -12,7 +12,9 @@ import torch
 
 import torch_interreflect as ti
 from torch_interreflect.training import generator as g
-from torch_interreflect.training.pngio import encode_png16, read_png16, write_png16
+from torch_interreflect.training import storage
+from torch_interreflect.training.commands import main_generate
+from torch_interreflect.training.storage import read_png, write_png16
 
 CFG = g.GeneratorConfig(count=5, seed=7, scenes=("v_groove", "box_corner", "cornell", "mesh"), size=(12, 16))
 
@@ -52,13 +54,15 @@ def test_interrupted_run_resumes_to_the_same_result(full_run: Path, tmp_path: Pa
     assert first.written == [0, 1]
     manifest = json.loads((tmp_path / g.MANIFEST_DIR / "shard-0000-of-0001.json").read_text())
     assert manifest["done"] == [0, 1] and not manifest["complete"]
-    # a half-written sample: files present but no sidecar, plus a stale temporary file
+    # a half-written sample: files present but no sidecar, plus the temporary files a killed process left (the
+    # names of this version and of the earlier one); resuming removes them, so the folder equals a clean run's
     (tmp_path / "000002.npy").write_bytes(b"garbage")
     (tmp_path / ".000002.png.tmp123").write_bytes(b"garbage")
+    (tmp_path / ".000002_geometry.tmp99999.npz").write_bytes(b"garbage")
     assert not g.is_complete(tmp_path, 2)
     second = g.generate(tmp_path, CFG, progress=False)
     assert second.skipped == [0, 1] and second.written == [2, 3, 4]
-    (tmp_path / ".000002.png.tmp123").unlink()
+    assert sorted(p.name for p in second.removed) == [".000002.png.tmp123", ".000002_geometry.tmp99999.npz"]
     assert _files(tmp_path) == _files(full_run)
     # a sample with a missing file is redone
     (tmp_path / "000003_b1.png").unlink()
@@ -100,7 +104,7 @@ def test_sample_content(full_run: Path) -> None:
     assert abs(np.linalg.norm(ill["rgb_normalized"]) - 1) < 1e-6
     img = np.load(full_run / "000001.npy")
     assert img.dtype == np.float32 and img.shape == (12, 16, 3)
-    png = read_png16(full_run / "000001.png")
+    png = read_png(full_run / "000001.png")
     assert png.dtype == np.uint16 and png.shape == (12, 16, 3)
     np.testing.assert_array_equal(png, np.round(np.clip(img, 0, 1) * 65535).astype(np.uint16))
     # more bounces, more light: direct ≤ 2 bounces ≤ ∞ (same exposure)
@@ -112,28 +116,107 @@ def test_sample_content(full_run: Path) -> None:
     assert geo["reflectance"].shape == (len(meta["materials"]), wl.numel())
 
 
-def test_png_writer_round_trip_and_pillow(tmp_path: Path) -> None:
+def test_png_files_round_trip_bit_exactly_and_ordinary_pngs_read(tmp_path: Path) -> None:
     a = np.random.default_rng(0).integers(0, 65536, (5, 7, 3)).astype(np.uint16)
     write_png16(tmp_path / "a.png", a)
-    np.testing.assert_array_equal(read_png16(tmp_path / "a.png"), a)
-    assert encode_png16(a) == encode_png16(a.copy())
+    back = read_png(tmp_path / "a.png")
+    assert back.dtype == np.uint16
+    np.testing.assert_array_equal(back, a)  # all 16 bits, every value
+    write_png16(tmp_path / "b.png", a.copy())
+    assert (tmp_path / "a.png").read_bytes() == (tmp_path / "b.png").read_bytes()  # same array, same bytes
     with pytest.raises(ValueError, match="uint16"):
-        encode_png16(a.astype(np.float32))
+        write_png16(tmp_path / "c.png", a.astype(np.float32))
+    # ordinary 8-bit PNGs as other programs write them (filtered rows, palettes) read too
     PIL = pytest.importorskip("PIL.Image")
+    b8 = (a >> 8).astype(np.uint8)
+    PIL.fromarray(b8).save(tmp_path / "rgb8.png")
+    np.testing.assert_array_equal(read_png(tmp_path / "rgb8.png"), b8)
+    PIL.fromarray(b8).convert("P", palette=PIL.Palette.ADAPTIVE, colors=256).convert("RGB").save(tmp_path / "q.png")
+    PIL.open(tmp_path / "q.png").convert("P", palette=PIL.Palette.ADAPTIVE, colors=256).save(tmp_path / "pal.png")
+    np.testing.assert_array_equal(read_png(tmp_path / "pal.png"), np.asarray(PIL.open(tmp_path / "q.png")))
+    # Pillow opens the 16-bit file as 8-bit RGB, silently dropping the low byte: that is why read_png exists
     with PIL.open(tmp_path / "a.png") as im:
-        assert im.size == (7, 5)
-        im.load()
+        assert im.mode == "RGB" and im.size == (7, 5)
+
+
+def test_failed_write_leaves_no_temporary_file(full_run: Path, tmp_path: Path,
+                                               monkeypatch: pytest.MonkeyPatch) -> None:
+    real_replace = storage.os.replace
+
+    def full_disk(src: object, dst: object) -> None:
+        if str(dst).endswith("000001_geometry.npz"):
+            raise OSError(28, "No space left on device")
+        real_replace(src, dst)
+
+    monkeypatch.setattr(storage.os, "replace", full_disk)
+    with pytest.raises(OSError, match="No space"):
+        g.generate(tmp_path, CFG, progress=False)
+    assert [p.name for p in tmp_path.iterdir() if ".tmp" in p.name] == []
+    assert g.is_complete(tmp_path, 0) and not g.is_complete(tmp_path, 1)
+    monkeypatch.setattr(storage.os, "replace", real_replace)
+    assert g.generate(tmp_path, CFG, progress=False).written == [1, 2, 3, 4]
+    assert _samples(tmp_path) == _samples(full_run)
+
+
+def test_a_folder_grows_with_a_larger_count(full_run: Path, tmp_path: Path) -> None:
+    small = g.GeneratorConfig(**{**CFG.__dict__, "count": 2})
+    assert g.generate(tmp_path, small, progress=False).written == [0, 1]
+    grown = g.generate(tmp_path, CFG, progress=False)
+    assert grown.skipped == [0, 1] and grown.written == [2, 3, 4]
+    assert g.read_config(tmp_path) == CFG  # the stored count follows the largest run
+    assert _samples(tmp_path) == _samples(full_run)
+    assert g.generate(tmp_path, small, progress=False).written == []  # a smaller count: nothing to do
+    assert g.read_config(tmp_path).count == CFG.count  # and never shrinks what is listed
+
+
+def test_render_sample_on_a_device_matches_the_cpu(device: torch.device) -> None:
+    cfg = g.GeneratorConfig(count=1, seed=3, scenes=("cornell",), size=(10, 12))
+    cpu = g.render_sample(cfg, 0)
+    dev = g.render_sample(cfg, 0, device=device)
+    for b in cfg.bounces:
+        np.testing.assert_allclose(dev.images[b], cpu.images[b], rtol=1e-6, atol=1e-7)
+        if device.type == "cpu":
+            np.testing.assert_array_equal(dev.images[b], cpu.images[b])
+    assert dev.metadata == cpu.metadata
 
 
 def test_cli(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     argv = ["--out", str(tmp_path), "--count", "2", "--seed", "3", "--scenes", "v_groove", "--size", "8x10",
             "--bounces", "inf", "1", "--no-geometry", "--no-progress", "--shard", "1/2"]
-    assert g.main_generate(argv) == 0
+    assert main_generate(argv) == 0
     assert "samples/s" in capsys.readouterr().out
     assert sorted(p.name for p in tmp_path.iterdir() if p.is_file()) == [
         "000001.json", "000001.npy", "000001.png", "000001_b1.npy", "000001_b1.png", "dataset.json"]
-    with pytest.raises(SystemExit):
-        g.main_generate(["--out", str(tmp_path), "--count", "2", "--size", "8by10"])
+
+
+@pytest.mark.parametrize("bad, says", [
+    (["--count", "-1"], "argument --count: expected an integer >= 0; got '-1'"),
+    (["--count", "2", "--size", "0x64"], "argument --size: expected HxW with positive integers"),
+    (["--count", "2", "--size", "8by10"], "argument --size: expected HxW"),
+    (["--count", "2", "--bounces", "0"], "argument --bounces: expected 'inf' or an integer >= 1; got '0'"),
+    (["--count", "2", "--supersample", "0"], "argument --supersample: expected an integer >= 1"),
+    (["--count", "2", "--shard", "2/2"], "shard must satisfy 0 <= shard < num_shards"),
+    (["--count", "2", "--camera", "Nikon 510O"], "unknown camera 'Nikon 510O'"),
+])
+def test_cli_usage_errors_are_one_line_exit_2_and_write_nothing(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], bad: list[str], says: str
+) -> None:
+    out = tmp_path / "data"
+    with pytest.raises(SystemExit) as exc:  # argparse exits; errors found later return the status
+        raise SystemExit(main_generate(["--out", str(out), "--no-progress", *bad]))
+    assert exc.value.code == 2
+    err = capsys.readouterr().err
+    assert len(err.strip().splitlines()) == 1 and says in err and "Traceback" not in err
+    assert not out.exists()  # a failed start writes nothing
+
+
+def test_cli_corrected_run_after_a_typo_and_debug_traceback(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    base = ["--out", str(tmp_path / "d"), "--count", "1", "--scenes", "v_groove", "--size", "6x6", "--no-progress"]
+    assert main_generate([*base, "--camera", "Nikkon"]) == 2
+    assert main_generate(base) == 0  # not blocked by the failed run
+    with pytest.raises(ValueError, match="another configuration"):
+        main_generate([*base[:-1], "--size", "6x7", "--debug", "--no-progress"])
+    capsys.readouterr()
 
 
 def test_bad_configs() -> None:

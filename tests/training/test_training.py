@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
+import math
 from pathlib import Path
 
 import numpy as np
@@ -31,12 +33,15 @@ from torch_interreflect.training import (
 from torch_interreflect.training.metrics import format_table
 
 CFG = GeneratorConfig(count=6, seed=1, scenes=("v_groove", "box_corner"), size=(16, 16))
+#: The end-to-end recipe's data: CFG's first 6 samples and 26 more (enough for the learned models to beat the
+#: baselines clearly: measured means 8.0 / 8.0 / 8.7 degrees against 18.5–19.2).
+E2E_COUNT = 32
 
 
 @pytest.fixture(scope="module")
 def data(tmp_path_factory: pytest.TempPathFactory) -> Path:
     out = tmp_path_factory.mktemp("cc")
-    generate(out, CFG, progress=False)
+    generate(out, dataclasses.replace(CFG, count=E2E_COUNT), progress=False)
     return out
 
 
@@ -161,12 +166,45 @@ def test_physics_informed_model_rerenders_and_one_step_lowers_the_loss(data: Pat
 
 
 def test_train_cc_recipe_end_to_end(data: Path, tmp_path: Path) -> None:
-    cfg = TrainConfig(data=str(data), out=str(tmp_path), count=6, test_fraction=0.34, epochs=1, physics_epochs=1,
-                      batch_size=2, width=4, progress=False)
+    cfg = TrainConfig(data=str(data), out=str(tmp_path), count=E2E_COUNT, test_fraction=0.25, epochs=30,
+                      physics_epochs=3, batch_size=8, width=8, progress=False)
     res = run_train_cc(cfg)
-    rows = list(res["summaries"])
-    assert rows[:3] == ["Grey-World", "White-Patch", "Grey-Edge"] and len(rows) == 6
-    assert (tmp_path / "results.md").read_text().count("\n|") >= 7
+    rows = res["summaries"]
+    baselines, learned = list(rows)[:3], list(rows)[3:]
+    assert baselines == ["Grey-World", "White-Patch", "Grey-Edge"] and len(learned) == 3
+    for name, s in rows.items():
+        values = [s[k] for k in ("mean", "median", "trimean", "best25", "worst25", "max")]
+        assert all(math.isfinite(v) and 0.0 <= v <= 180.0 for v in values), name
+        assert s["best25"] <= s["median"] <= s["worst25"] <= s["max"], name
+    # trained on 24 scenes, tested on 8 others: every learned model beats every baseline (8–9° against 18–19°)
+    worst_learned = max(rows[k]["mean"] for k in learned)
+    best_baseline = min(rows[k]["mean"] for k in baselines)
+    assert worst_learned < 0.7 * best_baseline, rows
+    table = (tmp_path / "results.md").read_text()
+    assert table.count("\n|") >= 7 and f"{rows['Grey-World']['mean']:.2f}" in table
     assert {p.name for p in tmp_path.glob("*.pt")} == {"fc4_direct.pt", "fc4_inf.pt", "physics.pt"}
-    with pytest.raises(ValueError, match="--count"):
-        run_train_cc(TrainConfig(data=str(data), count=60, progress=False))
+    # a second run into the same folder is refused before it trains, unless asked to overwrite
+    before = (tmp_path / "fc4_inf.pt").read_bytes()
+    with pytest.raises(FileExistsError, match="--overwrite"):
+        run_train_cc(dataclasses.replace(cfg, epochs=1, physics_epochs=0))
+    assert (tmp_path / "fc4_inf.pt").read_bytes() == before
+    run_train_cc(dataclasses.replace(cfg, epochs=1, physics_epochs=0, overwrite=True))
+    assert (tmp_path / "fc4_inf.pt").read_bytes() != before
+
+
+def test_train_cc_checks_the_data_before_it_writes(data: Path, tmp_path: Path) -> None:
+    base = TrainConfig(data=str(data), out=str(tmp_path / "r"), count=6, epochs=1, physics_epochs=0, progress=False)
+    with pytest.raises(ValueError, match="holds 16x16 images but --size is 64x64"):
+        run_train_cc(dataclasses.replace(base, size=(64, 64)))
+    assert not (tmp_path / "r").exists()
+    with pytest.raises(ValueError, match="count"):
+        TrainConfig(count=-1)
+
+
+def test_train_cc_grows_a_smaller_data_set(tmp_path: Path) -> None:
+    small = dataclasses.replace(CFG, count=3, scenes=("v_groove",), size=(8, 8), bounces=(None,), geometry=False)
+    generate(tmp_path / "d", small, progress=False)
+    res = run_train_cc(TrainConfig(data=str(tmp_path / "d"), count=5, test_fraction=0.4, epochs=1, physics_epochs=0,
+                                   batch_size=2, width=4, progress=False))
+    assert len(res["summaries"]) == 4  # baselines and the ∞-bounce CNN (no direct-only images, no geometry)
+    assert sorted(p.name for p in (tmp_path / "d").glob("0*.json")) == [f"{i:06d}.json" for i in range(5)]

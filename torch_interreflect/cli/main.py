@@ -7,6 +7,9 @@ import sys
 import time
 from collections.abc import Sequence
 
+from ..training.argtypes import positive_float, positive_int
+from ..training.commands import ArgumentParser, add_generate_parser, add_train_parser, run_command
+
 __all__ = ["main"]
 
 
@@ -41,23 +44,39 @@ def _demo(args: argparse.Namespace) -> int:
     return 0
 
 
-def main(argv: Sequence[str] | None = None) -> int:
-    """Entry point of the ``interreflect`` console script."""
-    parser = argparse.ArgumentParser(prog="interreflect", description=__doc__)
-    sub = parser.add_subparsers(dest="command", required=True)
+def _angle(text: str) -> float:
+    v = positive_float(text)
+    if v >= 180.0:
+        raise argparse.ArgumentTypeError(f"expected a groove angle in (0, 180) degrees; got {text!r}")
+    return v
+
+
+def build_parser() -> ArgumentParser:
+    """The parser of ``interreflect`` (sub-commands ``demo``, ``generate``, ``train-cc``)."""
+    parser = ArgumentParser(prog="interreflect", description=__doc__)
+    parser.add_argument("--debug", action="store_true", help="show the full traceback of an error")
+    sub = parser.add_subparsers(dest="command", required=True, parser_class=ArgumentParser)
     p = sub.add_parser("demo", help="the paper's V-groove experiment: n-bounce vs infinite-bounce camera RGB")
     p.add_argument("--out", default="out/demo", help="output folder (default: out/demo)")
-    p.add_argument("--angles", type=float, nargs="+", default=[45.0, 60.0], help="groove angles in degrees")
-    p.add_argument("--divisions", type=int, default=10, help="facets per plate edge (default 10, as the paper)")
+    p.add_argument("--angles", type=_angle, nargs="+", default=[45.0, 60.0], help="groove angles in degrees")
+    p.add_argument("--divisions", type=positive_int, default=10,
+                   help="facets per plate edge (default 10, as the paper)")
     p.add_argument("--no-progress", action="store_true", help="hide the progress bar")
+    p.add_argument("--debug", action="store_true", default=argparse.SUPPRESS,
+                   help="show the full traceback of an error")
     p.set_defaults(func=_demo)
-    from ..training.generator import add_generate_parser
-    from ..training.train import add_train_parser
-
     add_generate_parser(sub)
     add_train_parser(sub)
-    args = parser.parse_args(argv)
-    return int(args.func(args))
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of the ``interreflect`` console script.
+
+    Returns:
+        The exit status: 0, 2 for a usage error (one line on stderr), 1 for another error, 130 for Ctrl-C.
+    """
+    return run_command(build_parser(), argv)
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -1,29 +1,22 @@
 """Synthetic data and colour-constancy training with exact interreflection.
 
-- Data: :func:`generate` / :class:`GeneratorConfig` (``interreflect generate``), :func:`render_sample`,
-  random scenes, reflectances, illuminants, lights and views in :mod:`.random_scenes`.
+- Data: :class:`GeneratorConfig` (:mod:`.config`), :func:`render_sample` (:mod:`.sample`), the files and their
+  formats (:mod:`.storage`: :func:`read_png` reads the 16-bit PNGs bit-exactly), :func:`generate` (:mod:`.generator`,
+  ``interreflect generate``); random scenes, reflectances, illuminants, lights and views in :mod:`.random_scenes`.
 - Datasets: :class:`GeneratedDataset` (a generated folder), :class:`RenderedDataset` (on the fly),
   :func:`collate`, :func:`split_indices`.
 - Metrics: :func:`angular_error`, :func:`angular_loss`, :func:`summarize` (mean, median, tri-mean, best/worst 25 %).
 - Baselines: :func:`grey_world`, :func:`white_patch`, :func:`grey_edge`.
 - Models: :class:`FC4Net`, :class:`PhysicsInformedNet`, :func:`physics_loss`.
 - Recipe: :func:`run_train_cc` / :class:`TrainConfig` (``interreflect train-cc``).
+- Commands: :mod:`.commands` (``generate``, ``train-cc``; one-line errors, exit status 2 for usage errors).
 """
 
 from .baselines import BASELINES, grey_edge, grey_world, white_patch
+from .commands import add_generate_parser, add_train_parser, main_generate, main_train
+from .config import GeneratorConfig, shard_indices
 from .datasets import GeneratedDataset, RenderedDataset, collate, split_indices
-from .generator import (
-    GenerateResult,
-    GeneratorConfig,
-    Sample,
-    add_generate_parser,
-    generate,
-    is_complete,
-    load_geometry,
-    main_generate,
-    render_sample,
-    shard_indices,
-)
+from .generator import GenerateResult, generate
 from .metrics import angular_error, angular_loss, format_table, summarize
 from .models import FC4Net, PhysicsInformedNet, physics_loss
 from .random_scenes import (
@@ -35,7 +28,9 @@ from .random_scenes import (
     random_scene,
     random_view,
 )
-from .train import TrainConfig, add_train_parser, evaluate, main_train, run_train_cc, train_model
+from .sample import Sample, render_sample
+from .storage import is_complete, load_geometry, read_png
+from .train import TrainConfig, evaluate, run_train_cc, train_model
 
 __all__ = [
     "BASELINES",
@@ -69,6 +64,7 @@ __all__ = [
     "random_reflectances",
     "random_scene",
     "random_view",
+    "read_png",
     "render_sample",
     "run_train_cc",
     "shard_indices",

@@ -23,7 +23,9 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset
 
-from .generator import CONFIG_FILE, GeneratorConfig, is_complete, load_geometry, render_sample, variant_suffix
+from .config import CONFIG_FILE, GeneratorConfig, variant_suffix
+from .sample import render_sample
+from .storage import is_complete, load_geometry
 
 __all__ = ["GeneratedDataset", "RenderedDataset", "collate", "split_indices"]
 

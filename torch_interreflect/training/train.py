@@ -12,22 +12,20 @@ The recipe (:func:`run_train_cc`):
 5. test all of them on the held-out ∞-bounce images and write one table (``results.md``, ``results.json``) and the
    model weights to ``--out``.
 
-Distributed: run the same command under ``torchrun --nproc-per-node N``; the script reads ``RANK`` /
-``WORLD_SIZE`` (set by torchrun, SLURM wrappers, ...), joins a ``gloo`` process group (CPU; ``nccl`` when CUDA
-is used), wraps the models in ``DistributedDataParallel`` and shards the training set with a
+Distributed: run the same command under ``torchrun --nproc-per-node N -m torch_interreflect.cli train-cc …``;
+the script reads ``RANK`` / ``WORLD_SIZE`` (set by torchrun, SLURM wrappers, ...), joins a ``gloo`` process group
+(CPU; ``nccl`` when CUDA is used), wraps the models in ``DistributedDataParallel`` and shards the training set with a
 ``DistributedSampler``. Evaluation and writing happen on rank 0.
 """
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import json
 import math
 import os
-import sys
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -36,13 +34,24 @@ from torch import Tensor, nn
 from torch.utils.data import DataLoader, Dataset
 
 from .. import spectral
+from .._deprecation import moved_attribute
 from .baselines import BASELINES
 from .datasets import GeneratedDataset, collate, split_indices
-from .generator import CONFIG_FILE, GeneratorConfig, generate, is_complete
+from .generator import GeneratorConfig, generate, is_complete, read_config
 from .metrics import angular_error, format_table, summarize
 from .models import FC4Net, PhysicsInformedNet, physics_loss
 
-__all__ = ["TrainConfig", "add_train_parser", "evaluate", "main_train", "run_train_cc", "train_model"]
+__all__ = ["WEIGHT_FILES", "TrainConfig", "evaluate", "run_train_cc", "train_model"]
+
+_MOVED = {name: "torch_interreflect.training.commands" for name in ("add_train_parser", "main_train")}
+
+
+def __getattr__(name: str) -> object:
+    return moved_attribute(__name__, name, _MOVED)
+
+
+#: What :func:`run_train_cc` writes to its ``out`` folder (refused when present, unless ``overwrite``).
+WEIGHT_FILES = ("fc4_direct.pt", "fc4_inf.pt", "physics.pt", "results.md", "results.json")
 
 
 @dataclasses.dataclass
@@ -52,9 +61,10 @@ class TrainConfig:
     Attributes:
         data: Folder of generated data (generated there when incomplete).
         out: Folder for results and weights (default ``<data>/train-cc``).
-        count: Samples to generate / use.
-        seed: Generator seed, and the seed of the training.
-        size: Image ``(height, width)``.
+        count: Samples to use (a folder with fewer is grown to this many; samples do not depend on the count).
+        seed: Generator seed of new data (existing data keep theirs), and the seed of the training.
+        size: Image ``(height, width)``; ``None``: the existing data's size, or 64 × 64 for new data. A size that
+            differs from the existing data's is an error (the images would not be what was asked for).
         test_fraction: Fraction of the indices held out (the last ones).
         epochs: Epochs of each CNN.
         physics_epochs: Epochs of the physics-informed model (each step solves one interreflection per image).
@@ -66,13 +76,18 @@ class TrainConfig:
             a busy machine cost more than they bring; scale out with processes, ``torchrun``). ``None``: torch's
             choice.
         progress: Show progress bars.
+        overwrite: Replace results and weights already in ``out`` (otherwise their presence is an error, raised
+            before anything is generated or trained).
+
+    Raises:
+        ValueError: a field out of range (the message names it).
     """
 
     data: str = "out/cc-data"
     out: str | None = None
     count: int = 500
     seed: int = 0
-    size: tuple[int, int] = (64, 64)
+    size: tuple[int, int] | None = None
     test_fraction: float = 0.2
     epochs: int = 100
     physics_epochs: int = 30
@@ -82,6 +97,27 @@ class TrainConfig:
     reconstruction_weight: float = 10.0
     threads: int | None = 1
     progress: bool = True
+    overwrite: bool = False
+
+    def __post_init__(self) -> None:
+        checks = {"count": (self.count, 2), "epochs": (self.epochs, 0), "physics_epochs": (self.physics_epochs, 0),
+                  "batch_size": (self.batch_size, 1), "width": (self.width, 1)}
+        for name, (v, low) in checks.items():
+            if isinstance(v, bool) or not isinstance(v, int) or v < low:
+                raise ValueError(f"{name} must be an integer >= {low}; got {v!r}")
+        if self.size is not None:
+            self.size = tuple(int(v) for v in self.size)  # type: ignore[assignment]
+            if len(self.size) != 2 or min(self.size) < 1:
+                raise ValueError(f"size must be two positive integers (height, width); got {self.size!r}")
+        if not 0.0 < self.test_fraction < 1.0:
+            raise ValueError(f"test_fraction must lie in (0, 1); got {self.test_fraction!r}")
+        if not (math.isfinite(self.lr) and self.lr > 0):
+            raise ValueError(f"lr must be a finite number > 0; got {self.lr!r}")
+
+    @property
+    def out_dir(self) -> Path:
+        """Where results and weights go: ``out``, or ``<data>/train-cc``."""
+        return Path(self.out) if self.out else Path(self.data) / "train-cc"
 
 
 # ------------------------------------------------------------------------------------------------ distributed
@@ -130,17 +166,31 @@ class _InMemory(Dataset):
         return self.items[k]
 
 
+def _check_out(cfg: TrainConfig) -> None:
+    present = [n for n in WEIGHT_FILES if (cfg.out_dir / n).exists()]
+    if present and not cfg.overwrite:
+        raise FileExistsError(
+            f"{cfg.out_dir} already holds {', '.join(present)} from an earlier run; pass --overwrite to replace "
+            "them, or --out to write elsewhere"
+        )
+
+
+def _data_config(cfg: TrainConfig) -> GeneratorConfig:
+    """The generator config to use: the folder's (grown to ``cfg.count``), or a new one; checks the size."""
+    old = read_config(cfg.data)
+    if old is None:
+        return GeneratorConfig(count=cfg.count, seed=cfg.seed, size=cfg.size or (64, 64))
+    if cfg.size is not None and tuple(cfg.size) != old.size:
+        h, w = old.size
+        raise ValueError(f"{cfg.data} holds {h}x{w} images but --size is {cfg.size[0]}x{cfg.size[1]}; drop --size "
+                         f"(or pass --size {h}x{w}) to use these data, or use another --data folder")
+    return dataclasses.replace(old, count=max(old.count, cfg.count))
+
+
 def _ensure_data(cfg: TrainConfig, dist: _Dist) -> GeneratorConfig:
-    root = Path(cfg.data)
-    if (root / CONFIG_FILE).is_file():
-        gen = GeneratorConfig.from_json(json.loads((root / CONFIG_FILE).read_text())["generator"])
-        if gen.count < cfg.count:
-            raise ValueError(f"{root} holds a data set of {gen.count} samples but --count is {cfg.count}; use "
-                             "another --data folder or a smaller --count")
-    else:
-        gen = GeneratorConfig(count=cfg.count, seed=cfg.seed, size=tuple(cfg.size))  # type: ignore[arg-type]
-    if not all(is_complete(root, i) for i in range(cfg.count)):
-        generate(root, gen, shard=(dist.rank, dist.world), progress=cfg.progress and dist.main)
+    gen = _data_config(cfg)
+    if not all(is_complete(cfg.data, i) for i in range(cfg.count)):
+        generate(cfg.data, gen, shard=(dist.rank, dist.world), progress=cfg.progress and dist.main)
     dist.barrier()
     return gen
 
@@ -250,128 +300,91 @@ def _net_estimator(model: nn.Module) -> Callable[[Tensor, Tensor], Tensor]:
     return fn
 
 
+def _runs(cfg: TrainConfig, gen: GeneratorConfig) -> list[tuple[str, str, Callable[[], nn.Module], Any, int]]:
+    """``(label, key, make model, variant, epochs)`` of each model to train."""
+    wl = spectral.wavelengths(*gen.wavelengths)
+    runs: list[tuple[str, str, Callable[[], nn.Module], Any, int]] = []
+    if 1 in gen.bounces:
+        runs.append(("FC4-style CNN, trained on direct-only", "fc4_direct", lambda: FC4Net(cfg.width), 1, cfg.epochs))
+    runs.append(("FC4-style CNN, trained on ∞-bounce", "fc4_inf", lambda: FC4Net(cfg.width), None, cfg.epochs))
+    if gen.geometry and cfg.physics_epochs > 0:
+        runs.append(("Physics-informed (∞-bounce + re-rendering)", "physics",
+                     lambda: PhysicsInformedNet(wl, gen.camera, width=cfg.width), "physics", cfg.physics_epochs))
+    return runs
+
+
+def _train_all(cfg: TrainConfig, gen: GeneratorConfig, dist: _Dist, train_idx: list[int], test: Dataset,
+               summaries: dict, seconds: dict) -> dict[str, list[dict[str, float]]]:
+    history: dict[str, list[dict[str, float]]] = {}
+    out = cfg.out_dir
+    for label, key, make, variant, epochs in _runs(cfg, gen):
+        torch.manual_seed(cfg.seed)  # DistributedDataParallel broadcasts rank 0's initial weights anyway
+        model = make()
+        physics = variant == "physics"
+        local = _InMemory(GeneratedDataset(cfg.data, None if physics else variant, train_idx, geometry=physics))
+        t0 = time.perf_counter()
+        loss_fn = _physics_loss(cfg.reconstruction_weight) if physics else _cnn_loss
+        history[key] = train_model(model, local, loss_fn, epochs=epochs, batch_size=cfg.batch_size, lr=cfg.lr,
+                                   seed=cfg.seed, dist=dist, progress=cfg.progress, desc=key)
+        seconds[key] = time.perf_counter() - t0
+        if dist.main:
+            summaries[label] = summarize(evaluate(_net_estimator(model), test))
+            out.mkdir(parents=True, exist_ok=True)
+            torch.save(model.state_dict(), out / f"{key}.pt")
+        dist.barrier()
+    return history
+
+
+def _write_results(cfg: TrainConfig, gen: GeneratorConfig, dist: _Dist, n: tuple[int, int], summaries: dict,
+                   seconds: dict, history: dict) -> str:
+    table = format_table(summaries)
+    header = (f"Recovery angular error (degrees) on {n[1]} held-out ∞-bounce images "
+              f"({gen.size[0]}×{gen.size[1]}, camera {gen.camera}); training on {n[0]} scenes; "
+              f"{dist.world} process(es); wall time {seconds['total']:.0f} s.\n\n")
+    out = cfg.out_dir
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "results.md").write_text(header + table + "\n")
+    config = {**dataclasses.asdict(cfg), "size": list(gen.size)}
+    (out / "results.json").write_text(json.dumps(
+        {"config": config, "generator": gen.to_json(), "summaries": summaries, "seconds": seconds,
+         "history": history}, indent=1) + "\n")
+    return header + table
+
+
 def run_train_cc(cfg: TrainConfig) -> dict[str, Any]:
     """Generate (if needed), train, evaluate and write the results table (see the module docstring).
 
     Returns:
         ``{"table": markdown, "summaries": {method: summary}, "seconds": {...}, "history": {...}}`` on rank 0
         (other ranks get the same keys with empty values).
+
+    Raises:
+        FileExistsError: results or weights already in the output folder and ``cfg.overwrite`` not set.
+        ValueError: ``cfg.size`` differs from the existing data's size, or the data folder holds another
+            generator configuration. Both are raised before anything is written.
     """
     t_start = time.perf_counter()
+    _check_out(cfg)
     old_threads = torch.get_num_threads()
     if cfg.threads is not None:
         torch.set_num_threads(int(cfg.threads))
     dist = _init_distributed()
     try:
         gen = _ensure_data(cfg, dist)
-        t_data = time.perf_counter() - t_start
+        seconds: dict[str, float] = {"data": time.perf_counter() - t_start}
         train_idx, test_idx = split_indices(cfg.count, cfg.test_fraction)
-        root = cfg.data
-        out = Path(cfg.out or Path(cfg.data) / "train-cc")
-        test = _InMemory(GeneratedDataset(root, None, test_idx))
-        wl = spectral.wavelengths(*gen.wavelengths)
+        test = _InMemory(GeneratedDataset(cfg.data, None, test_idx))
         summaries: dict[str, dict[str, float]] = {}
-        seconds: dict[str, float] = {"data": t_data}
-        history: dict[str, list[dict[str, float]]] = {}
         if dist.main:
             for name, fn in BASELINES.items():
                 summaries[name] = summarize(evaluate(fn, test))
-
-        runs: list[tuple[str, str, Callable[[], nn.Module], Any, int]] = []
-        if 1 in gen.bounces:
-            runs.append(("FC4-style CNN, trained on direct-only", "fc4_direct", lambda: FC4Net(cfg.width), 1,
-                         cfg.epochs))
-        runs.append(("FC4-style CNN, trained on ∞-bounce", "fc4_inf", lambda: FC4Net(cfg.width), None, cfg.epochs))
-        if gen.geometry and cfg.physics_epochs > 0:
-            runs.append(("Physics-informed (∞-bounce + re-rendering)", "physics",
-                         lambda: PhysicsInformedNet(wl, gen.camera, width=cfg.width), "physics", cfg.physics_epochs))
-        for label, key, make, variant, epochs in runs:
-            torch.manual_seed(cfg.seed)  # DistributedDataParallel broadcasts rank 0's initial weights anyway
-            model = make()
-            physics = variant == "physics"
-            ds = GeneratedDataset(root, None if physics else variant, train_idx, geometry=physics)
-            t0 = time.perf_counter()
-            loss_fn = _physics_loss(cfg.reconstruction_weight) if physics else _cnn_loss
-            local = _InMemory(ds)
-            history[key] = train_model(model, local, loss_fn, epochs=epochs, batch_size=cfg.batch_size, lr=cfg.lr,
-                                       seed=cfg.seed, dist=dist, progress=cfg.progress, desc=key)
-            seconds[key] = time.perf_counter() - t0
-            if dist.main:
-                summaries[label] = summarize(evaluate(_net_estimator(model), test))
-                out.mkdir(parents=True, exist_ok=True)
-                torch.save(model.state_dict(), out / f"{key}.pt")
-            dist.barrier()
+        history = _train_all(cfg, gen, dist, train_idx, test, summaries, seconds)
         seconds["total"] = time.perf_counter() - t_start
         if not dist.main:
             return {"table": "", "summaries": {}, "seconds": seconds, "history": history}
-        table = format_table(summaries)
-        n_train, n_test = len(train_idx), len(test_idx)
-        header = (f"Recovery angular error (degrees) on {n_test} held-out ∞-bounce images "
-                  f"({gen.size[0]}×{gen.size[1]}, camera {gen.camera}); training on {n_train} scenes; "
-                  f"{dist.world} process(es); wall time {seconds['total']:.0f} s.\n\n")
-        (out / "results.md").write_text(header + table + "\n")
-        (out / "results.json").write_text(json.dumps(
-            {"config": {**dataclasses.asdict(cfg), "size": list(cfg.size)}, "generator": gen.to_json(),
-             "summaries": summaries, "seconds": seconds, "history": history}, indent=1) + "\n")
-        return {"table": header + table, "summaries": summaries, "seconds": seconds, "history": history}
+        table = _write_results(cfg, gen, dist, (len(train_idx), len(test_idx)), summaries, seconds, history)
+        return {"table": table, "summaries": summaries, "seconds": seconds, "history": history}
     finally:
         torch.set_num_threads(old_threads)
         if dist.started_here:
             torch.distributed.destroy_process_group()
-
-
-# ------------------------------------------------------------------------------------------------ CLI
-def add_train_parser(sub: Any) -> argparse.ArgumentParser:
-    """Add the ``train-cc`` sub-command to an ``argparse`` sub-parsers object."""
-    from .generator import _size
-
-    d = TrainConfig()
-    p = sub.add_parser("train-cc", help="colour constancy on generated data: baselines, CNNs, physics-informed model",
-                       description=(__doc__ or "").split("\n\n")[0])
-    p.add_argument("--data", default=d.data, help=f"generated data folder, created if needed (default {d.data})")
-    p.add_argument("--out", default=None, help="results and weights (default <data>/train-cc)")
-    p.add_argument("--count", type=int, default=d.count, help=f"samples (default {d.count})")
-    p.add_argument("--seed", type=int, default=d.seed, help="seed of the data and the training (default 0)")
-    p.add_argument("--size", type=_size, default=d.size, help="image size HxW (default 64x64)")
-    p.add_argument("--test-fraction", type=float, default=d.test_fraction, help="held-out fraction (default 0.2)")
-    p.add_argument("--epochs", type=int, default=d.epochs, help=f"epochs of each CNN (default {d.epochs})")
-    p.add_argument("--physics-epochs", type=int, default=d.physics_epochs,
-                   help=f"epochs of the physics-informed model, 0 to skip (default {d.physics_epochs})")
-    p.add_argument("--batch-size", type=int, default=d.batch_size, help=f"per process (default {d.batch_size})")
-    p.add_argument("--lr", type=float, default=d.lr, help=f"Adam learning rate (default {d.lr})")
-    p.add_argument("--width", type=int, default=d.width, help=f"network width (default {d.width})")
-    p.add_argument("--reconstruction-weight", type=float, default=d.reconstruction_weight,
-                   help=f"weight of the re-rendering loss (default {d.reconstruction_weight})")
-    p.add_argument("--threads", type=int, default=d.threads,
-                   help="torch threads per process (default 1; 0 = torch's choice)")
-    p.add_argument("--no-progress", action="store_true", help="hide progress bars")
-    p.set_defaults(func=_run_train)
-    return p
-
-
-def _run_train(args: argparse.Namespace) -> int:
-    cfg = TrainConfig(
-        data=args.data, out=args.out, count=args.count, seed=args.seed, size=args.size,
-        test_fraction=args.test_fraction, epochs=args.epochs, physics_epochs=args.physics_epochs,
-        batch_size=args.batch_size, lr=args.lr, width=args.width, reconstruction_weight=args.reconstruction_weight,
-        threads=args.threads or None, progress=not args.no_progress,
-    )
-    res = run_train_cc(cfg)
-    if res["table"]:
-        print(res["table"])
-        print("\nSeconds: " + ", ".join(f"{k} {v:.0f}" for k, v in res["seconds"].items()))
-        print(f"Wrote {Path(cfg.out or Path(cfg.data) / 'train-cc')}/results.md, results.json and the weights.")
-    return 0
-
-
-def main_train(argv: Sequence[str] | None = None) -> int:
-    """``interreflect train-cc`` as a stand-alone entry point (``python -m torch_interreflect.training.train``)."""
-    parser = argparse.ArgumentParser(prog="interreflect")
-    sub = parser.add_subparsers(dest="command", required=True)
-    add_train_parser(sub)
-    args = parser.parse_args(["train-cc", *(argv if argv is not None else sys.argv[1:])])
-    return int(args.func(args))
-
-
-if __name__ == "__main__":  # pragma: no cover
-    raise SystemExit(main_train())

@@ -1,0 +1,153 @@
+"""What the generator makes: :class:`GeneratorConfig`, the file names of a sample, and the shards.
+
+The configuration says everything that decides a sample's bytes except its index; ``count`` only says how many
+indices a run covers (sample ``i`` does not depend on it, so a data set can grow).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any
+
+from .random_scenes import ILLUMINANT_KINDS, SCENE_KINDS
+
+__all__ = [
+    "CONFIG_FILE",
+    "MANIFEST_DIR",
+    "GeneratorConfig",
+    "parse_shard",
+    "sample_files",
+    "shard_indices",
+    "variant_suffix",
+]
+
+#: The configuration file of a generated folder.
+CONFIG_FILE = "dataset.json"
+#: The folder of the per-shard manifests.
+MANIFEST_DIR = "manifest"
+
+
+def _check_int(name: str, value: Any, low: int) -> int:
+    if isinstance(value, bool) or not isinstance(value, int) or value < low:
+        raise ValueError(f"{name} must be an integer >= {low}; got {value!r}")
+    return value
+
+
+@dataclasses.dataclass(frozen=True)
+class GeneratorConfig:
+    """What to generate. Two runs with equal configs write identical files.
+
+    Attributes:
+        count: Number of samples (indices ``0 … count − 1``).
+        seed: Base seed; sample ``i`` draws from ``numpy.random.default_rng([seed, i])``.
+        scenes: Scene kinds to draw from (:data:`~.random_scenes.SCENE_KINDS`).
+        illuminants: Illuminant families (:data:`~.random_scenes.ILLUMINANT_KINDS`).
+        camera: Camera sensitivities (:meth:`torch_interreflect.Camera.from_colour` name).
+        size: Image ``(height, width)`` in pixels.
+        bounces: Variants to render: ``None`` (infinite bounces, always the main image) and ``n ≥ 1``.
+        supersample: Sub-pixels per pixel side for the coverage (anti-aliasing).
+        wavelengths: ``(start, stop, step)`` of the grid in nm.
+        geometry: Also write the ``_geometry.npz`` file.
+        basis_components: Components of the reflectance PCA basis random spectra are drawn from.
+
+    Raises:
+        ValueError: a field out of its range (the message names the field, what it must be and what came).
+    """
+
+    count: int = 100
+    seed: int = 0
+    scenes: tuple[str, ...] = SCENE_KINDS
+    illuminants: tuple[str, ...] = ILLUMINANT_KINDS
+    camera: str = "Nikon 5100 (NPL)"
+    size: tuple[int, int] = (64, 64)
+    bounces: tuple[int | None, ...] = (None, 1, 2)
+    supersample: int = 2
+    wavelengths: tuple[float, float, float] = (400.0, 700.0, 10.0)
+    geometry: bool = True
+    basis_components: int = 6
+
+    def __post_init__(self) -> None:
+        _check_int("count", self.count, 0)
+        _check_int("seed", self.seed, 0)
+        object.__setattr__(self, "scenes", tuple(self.scenes))
+        object.__setattr__(self, "illuminants", tuple(self.illuminants))
+        for kinds, allowed, what in ((self.scenes, SCENE_KINDS, "scenes"),
+                                     (self.illuminants, ILLUMINANT_KINDS, "illuminants")):
+            bad = [k for k in kinds if k not in allowed]
+            if bad or not kinds:
+                raise ValueError(f"{what} must be a non-empty list from {list(allowed)}; got {list(kinds)}")
+        h, w = (int(v) for v in self.size)
+        if h < 1 or w < 1:
+            raise ValueError(f"size must be two positive integers (height, width); got {self.size!r}")
+        object.__setattr__(self, "size", (h, w))
+        b = tuple(None if v is None else int(v) for v in self.bounces)
+        if None not in b or any(v is not None and v < 1 for v in b) or len(set(b)) != len(b):
+            raise ValueError(f"bounces must hold None (infinite, the main image) and distinct n >= 1; got {b}")
+        object.__setattr__(self, "bounces", (None, *sorted(v for v in b if v is not None)))
+        _check_int("supersample", self.supersample, 1)
+        _check_int("basis_components", self.basis_components, 1)
+        object.__setattr__(self, "wavelengths", tuple(float(v) for v in self.wavelengths))
+
+    def same_samples(self, other: GeneratorConfig) -> bool:
+        """Whether ``other`` makes the same sample ``i`` as this config for every ``i`` (all fields but ``count``)."""
+        return dataclasses.replace(self, count=0) == dataclasses.replace(other, count=0)
+
+    def to_json(self) -> dict[str, Any]:
+        """The config as JSON-able data (``bounces``: ``"inf"`` for ``None``)."""
+        d = dataclasses.asdict(self)
+        d["bounces"] = ["inf" if v is None else v for v in self.bounces]
+        d["scenes"], d["illuminants"] = list(self.scenes), list(self.illuminants)
+        d["size"], d["wavelengths"] = list(self.size), list(self.wavelengths)
+        return d
+
+    @classmethod
+    def from_json(cls, d: dict[str, Any]) -> GeneratorConfig:
+        """Inverse of :meth:`to_json`."""
+        d = dict(d)
+        d["bounces"] = tuple(None if v == "inf" else int(v) for v in d["bounces"])
+        d["size"] = tuple(d["size"])
+        d["wavelengths"] = tuple(d["wavelengths"])
+        fields = {f.name for f in dataclasses.fields(cls)}
+        return cls(**{k: v for k, v in d.items() if k in fields})
+
+
+def variant_suffix(bounces: int | None) -> str:
+    """File-name suffix of a variant: ``""`` for infinite bounces, ``"_b{n}"`` otherwise."""
+    return "" if bounces is None else f"_b{int(bounces)}"
+
+
+def sample_files(config: GeneratorConfig, index: int) -> list[str]:
+    """Names of the files of sample ``index`` (sidecar last)."""
+    stem = f"{index:06d}"
+    names = []
+    for b in config.bounces:
+        names += [f"{stem}{variant_suffix(b)}.png", f"{stem}{variant_suffix(b)}.npy"]
+    if config.geometry:
+        names.append(f"{stem}_geometry.npz")
+    return [*names, f"{stem}.json"]
+
+
+def shard_indices(count: int, shard: int = 0, num_shards: int = 1) -> range:
+    """Indices of one shard: ``range(shard, count, num_shards)``; the shards partition ``range(count)``.
+
+    Raises:
+        ValueError: ``num_shards < 1`` or ``shard`` outside ``[0, num_shards)``.
+
+    Example:
+        >>> from torch_interreflect.training.generator import shard_indices
+        >>> list(shard_indices(7, 1, 3))
+        [1, 4]
+    """
+    if num_shards < 1 or not 0 <= shard < num_shards:
+        raise ValueError(f"shard must satisfy 0 <= shard < num_shards (num_shards >= 1); got {shard}/{num_shards}")
+    return range(shard, count, num_shards)
+
+
+def parse_shard(text: str) -> tuple[int, int]:
+    """``"i/n"`` → ``(i, n)`` (e.g. a SLURM array: ``--shard $SLURM_ARRAY_TASK_ID/$SLURM_ARRAY_TASK_COUNT``)."""
+    try:
+        i, n = (int(v) for v in text.split("/"))
+    except ValueError as exc:
+        raise ValueError(f"shard must look like 'i/n' (e.g. '0/4'); got {text!r}") from exc
+    shard_indices(0, i, n)
+    return i, n
