@@ -18,7 +18,18 @@ from ..formfactors.operator import FormFactors
 from ..geometry.scene import Scene, area_average
 from ..lights import light_geometry
 
-__all__ = ["Leaves", "light_factor", "relative_change", "rms", "select", "split", "subset", "to_user"]
+__all__ = [
+    "SKY_SAMPLES",
+    "Leaves",
+    "light_check",
+    "light_factor",
+    "relative_change",
+    "rms",
+    "select",
+    "split",
+    "subset",
+    "to_user",
+]
 
 
 @dataclass
@@ -78,15 +89,35 @@ def rms(x: Tensor) -> float:
     return float(x.square().mean().sqrt()) if x.numel() else 0.0
 
 
+#: Directions per axis of the ray-cast parts of the sky (:func:`torch_interreflect.lights.sky`), and the smaller
+#: count :func:`light_check` compares with.
+SKY_SAMPLES, SKY_CHECK_SAMPLES = 16, 24
+
+
 def light_factor(light: Any, scene: Scene, K: FormFactors, user: Tensor, num_user: int) -> Tensor:
     """Geometric factor ``g [n]`` of the light on the leaves: ``E0 = g ⊗ spectrum``."""
     if isinstance(light, str) and light == "sky":
-        return lights.sky(scene, K, torch.ones(1, dtype=scene.dtype, device=scene.device))[:, 0]
+        one = torch.ones(1, dtype=scene.dtype, device=scene.device)
+        return lights.sky(scene, K, one, samples=SKY_SAMPLES)[:, 0]
     if isinstance(light, Tensor) and light.ndim == 1 and light.shape[0] == num_user and num_user != 3:
         if light.dtype == torch.bool:
             return light_geometry(light.to(scene.device)[user], K, scene)
         return light.to(device=scene.device, dtype=scene.dtype)[user]  # a factor per user facet: per leaf
     return light_geometry(light, K, scene)
+
+
+def light_check(light: Any, scene: Scene, K: FormFactors) -> Tensor | None:
+    """The light factor ``[n]`` cast again with :data:`SKY_CHECK_SAMPLES` directions per axis, for a light with
+    ray-cast parts (the sky); ``None`` for the others (deterministic: their error is discretisation).
+
+    The sky's open part on facets with occluded pairs and its back-face coverage are Monte Carlo estimates whose
+    error does not fall with refinement (each leaf gets the same rays); the difference between the two estimates
+    measures it.
+    """
+    if not (isinstance(light, str) and light == "sky"):
+        return None
+    one = torch.ones(1, dtype=scene.dtype, device=scene.device)
+    return lights.sky(scene, K, one, samples=SKY_CHECK_SAMPLES)[:, 0]
 
 
 def _chosen(est: Tensor, target: float) -> list[int]:

@@ -23,7 +23,7 @@ from ..formfactors.operator import FormFactors
 from ..formfactors.quadrature import form_factors as compute_form_factors
 from ..geometry.scene import Scene
 from ..solver.api import solve
-from .leaves import Leaves, light_factor, relative_change, rms, select, split, to_user
+from .leaves import Leaves, light_check, light_factor, relative_change, rms, select, split, to_user
 from .wavelengths import interp_matrix, nested_subsets
 
 __all__ = ["Q_MAX", "Q_MIN", "STALL", "Problem", "Refinement", "refine"]
@@ -90,6 +90,8 @@ class Refinement:
         nodes: Indices of the wavelengths solved ``[L']``; ``wavelength_error`` the RGB error of that subset.
         est: Estimated discretisation error per user facet ``[F]`` (float64, CPU; inf until measured).
         sampled: User facets whose rows rest on ray-cast visibility ``[F]``.
+        light_error: Relative error per user facet of the ray-cast part of the light ``[F]`` (measured on the
+            user's facets, before any refinement: it does not fall with refinement).
         history: Per level: leaves, estimate, seconds. iterations: Refinement steps. reason: Why it stopped
             short of the target ("" when it did not).
     """
@@ -101,6 +103,7 @@ class Refinement:
     touched: Tensor
     sampled: Tensor
     wavelength_error: float = 0.0
+    light_error: Tensor | None = None
     prev_user: Tensor | None = None
     K: FormFactors | None = None
     g: Tensor | None = None
@@ -150,6 +153,16 @@ def _choose_wavelengths(pb: Problem, st: Refinement, refl_leaf: Tensor) -> Tenso
     return h_full[..., st.nodes]  # the full-grid solve already holds the subset
 
 
+def _light_error(pb: Problem, st: Refinement, refl_leaf: Tensor) -> Tensor:
+    """Relative change per user facet ``[F]`` of the gain when the ray-cast part of the light is cast again
+    (zeros for lights without one)."""
+    other = light_check(pb.light, st.leaves.scene, st.K)  # type: ignore[arg-type]
+    if other is None:
+        return torch.zeros(pb.F, dtype=torch.float64)
+    h_other = pb.solve_gain(st.K, refl_leaf[..., st.nodes], other)  # type: ignore[arg-type]
+    return relative_change(h_other, st.h).to(torch.float64).cpu()  # type: ignore[arg-type]
+
+
 @torch.no_grad()
 def _solve_level(pb: Problem, st: Refinement) -> Tensor:
     """Solve the current leaves; returns the output (irradiance or RGB) on the user's facets ``[..., F, C]``."""
@@ -159,6 +172,8 @@ def _solve_level(pb: Problem, st: Refinement) -> Tensor:
         st.h = _choose_wavelengths(pb, st, refl_leaf)
     else:
         st.h = pb.solve_gain(st.K, refl_leaf[..., st.nodes], st.g)  # type: ignore[arg-type]
+    if st.light_error is None:  # level 0 (the leaves are the user's facets): the ray-cast light's error
+        st.light_error = _light_error(pb, st, refl_leaf)
     vals = pb.rgb_of(st.h, st.nodes, refl_leaf) if pb.camera is not None else st.h * pb.S[..., None, st.nodes]
     return to_user(vals, st.leaves, pb.F)
 

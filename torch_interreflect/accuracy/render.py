@@ -22,6 +22,11 @@ its share:
   within its share. It is used only where it makes the matrix sparse enough to pay.
 - **Bounces**: the n-bounce series stops when its tail bound ``(r_max ρ)^n / (1 − r_max ρ) · ‖E0‖∞`` is within its
   share; conjugate gradients are used instead when they need fewer products (bright scenes).
+- **Ray-cast light** (the sky on scenes where facets occlude each other): its open part and back-face coverage are
+  Monte Carlo estimates with the same rays per leaf at every level, so refinement does not lower their error. It
+  is measured once, on the user's facets, by casting the rays again with fewer directions (the difference of two
+  estimates); it has no share of its own, so when it is large the target is reported not reached (with an
+  ``AccuracyWarning`` that names it) instead of being missed silently (the Cornell box under a sky).
 - **Wavelengths** (camera RGB only): the interreflection gain ``h = E / S`` (``S`` the illuminant) is solved on a
   nested subset of the grid and interpolated linearly in between; the coarsest subset whose RGB error, measured
   on the user's facets against the full grid, is within its share is used for all the work.

@@ -20,7 +20,7 @@ class AccuracyReport:
             discretisation estimate plus the bounds of the other sources.
         estimated_max: The largest per-facet estimate.
         per_facet: Estimated relative error per user facet. Shape ``[F]``.
-        parts: Estimated (discretisation) or bounded (the rest) relative RMS error per source.
+        parts: Estimated (discretisation, ray-cast light) or bounded (the rest) relative RMS error per source.
         reached: Whether ``estimated <= requested``.
         leaves: Facets actually solved (after refinement).
         leaves_per_facet: Leaves per user facet. Shape ``[F]``.
