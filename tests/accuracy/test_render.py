@@ -206,3 +206,32 @@ def test_layer_with_accuracy_keeps_the_scene_facets_and_meets_the_target():
     rgb.sum().backward()
     assert r.grad is not None and bool(torch.isfinite(r.grad).all()) and float(r.grad.abs().min()) > 0
     assert "leaves" in repr(layer)
+
+
+def test_occluded_scene_under_a_sky_warns_or_bounds_the_error():
+    """Issue 13 item 12: the Cornell box under a sky (r = 0.2) against the stored converged Mitsuba reference. The
+    sky's ray-cast open part has a Monte Carlo error that refinement does not lower (about 1.4 % here, measured
+    against Mitsuba at 6,700 leaves while the old estimate said 0.78 % and did not warn); it is measured and
+    reported, and whenever the actual error exceeds the request an AccuracyWarning is issued."""
+    import json
+    from pathlib import Path
+
+    import numpy as np
+
+    refs = Path(__file__).resolve().parents[2] / "benchmarks" / "references"
+    spec = json.loads((refs / "cornell_sky_r2.json").read_text())
+    reference = torch.from_numpy(np.load(refs / "cornell_sky_r2.npz")["irradiance"].astype(np.float64))
+    scene = ti.scenes.cornell_box(**spec["kwargs"], dtype=D)
+    level = torch.full((1,), spec["light"]["radiance"], dtype=D)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        out = ti.render(
+            scene, _grey(scene, spec["reflectance"]), "sky", level, wavelengths=WL, accuracy=1e-2, max_facets=240
+        )
+    warned = any(issubclass(w.category, AccuracyWarning) for w in caught)
+    actual = _rel_rms(out.irradiance[:, 0], reference)
+    rep = out.report
+    assert rep.parts["light"] >= 1e-2  # measured 2.4 % (16 vs 24 directions); the actual light error is 1.3-2 %
+    assert rep.estimated >= actual  # measured 18.4 % against 3.4 %
+    if actual > 1e-2:
+        assert warned and not rep.reached

@@ -1,6 +1,9 @@
 """Accuracy as an input: :func:`render` and :func:`plan` refine the mesh and choose every setting for a
 requested relative error, and report the error they estimate they left."""
 
-from .render import BUDGET, AccuracyReport, Plan, RenderResult, plan, render
+from .plan import Plan, plan
+from .render import render
+from .report import AccuracyReport, RenderResult
+from .settings import BUDGET
 
 __all__ = ["BUDGET", "AccuracyReport", "Plan", "RenderResult", "plan", "render"]

@@ -17,7 +17,6 @@ from ..spectral.illuminants import daylight, daylight_basis, daylight_from_cct, 
 __all__ = ["IlluminantBasis"]
 
 
-
 class IlluminantBasis(nn.Module):
     """Illuminant spectra from a few parameters: CIE daylight by ``(M1, M2)`` or by CCT, or a blackbody.
 

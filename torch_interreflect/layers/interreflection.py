@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import warnings
 from collections.abc import Sequence
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -19,6 +20,7 @@ import torch
 from torch import Tensor, nn
 
 from .. import spectral
+from ..accuracy.plan import plan
 from ..camera.facet_rgb import facet_rgb
 from ..camera.sensor import Camera
 from ..errors import ShapeError
@@ -107,64 +109,17 @@ class Interreflection(nn.Module):
         plan_reflectance: Tensor | None = None,
     ) -> None:
         super().__init__()
-        scene: Scene | None
-        if isinstance(scene_or_form_factors, Scene) and accuracy is not None:
-            scene, ff = scene_or_form_factors, None
-        elif isinstance(scene_or_form_factors, Scene):
-            scene, ff = scene_or_form_factors, _compute_form_factors(scene_or_form_factors)
-        elif isinstance(scene_or_form_factors, FormFactors):
-            scene, ff = None, scene_or_form_factors
-        elif (
-            isinstance(scene_or_form_factors, tuple)
-            and len(scene_or_form_factors) == 2
-            and isinstance(scene_or_form_factors[0], Scene)
-            and isinstance(scene_or_form_factors[1], FormFactors)
-        ):
-            scene, ff = scene_or_form_factors
-        else:
-            raise TypeError(
-                "scene_or_form_factors must be a Scene, a FormFactors or a (Scene, FormFactors) pair; got "
-                f"{type(scene_or_form_factors).__name__}"
-            )
+        scene, ff = _scene_and_form_factors(scene_or_form_factors, accuracy is not None)
         wl = spectral.check_wavelengths(wavelengths, min_samples=2)
-        if isinstance(camera, str):
-            camera = Camera.from_colour(camera, wl)
-        if not isinstance(camera, Camera):
-            raise TypeError(f"camera must be a Camera or a sensitivity name; got {type(camera).__name__}")
+        camera = _camera(camera, wl)
         self.accuracy_report = None
-        leaf_user = None
+        refined = None
         if accuracy is not None:
-            if scene is None or ff is not None:
-                raise ValueError("accuracy= needs the layer to be built from a Scene (it refines the scene itself)")
-            from ..accuracy.render import plan as _plan
-
-            n_user = scene.num_facets
-            pr = plan_reflectance if plan_reflectance is not None else torch.full((n_user,), 0.9, dtype=scene.dtype)
-            cam_plan = Camera(camera.sensitivities.to(scene.dtype), camera.wavelengths.to(scene.dtype))
-            p = _plan(scene, pr, light, "D65", cam_plan, accuracy=accuracy)
-            p_full = p.form_factors
-            ff = FormFactors(p_full.matrix, p_full.areas, dict(p_full.info))
-            leaf_user, leaf_light = p.leaves, p.light_factor
-            bounces = p.bounces
-            tol = p.solver_tol if p.method != "series" else tol
-            method = p.method if p.method != "series" else method
-            self.accuracy_report = p.report
-        if ff is None:  # pragma: no cover - every branch above sets it
-            raise RuntimeError("no form factors")
-        if scene is not None and scene.num_facets != ff.num_facets and leaf_user is None:
-            raise ShapeError(f"the scene has {scene.num_facets} facets but the form factors {ff.num_facets}")
-        if bounces is not None and (isinstance(bounces, bool) or not isinstance(bounces, int) or bounces < 1):
-            raise ValueError(f"bounces must be None (infinite) or an integer >= 1; got {bounces!r}")
-        if camera.num_wavelengths != wl.shape[0]:
-            raise ShapeError(
-                f"the camera has {camera.num_wavelengths} wavelengths but the grid has {wl.shape[0]}"
-            )
-        n_facets = scene.num_facets if leaf_user is not None and scene is not None else ff.num_facets
-        if projection is not None and getattr(projection, "num_facets", n_facets) != n_facets:
-            raise ShapeError(f"the projection has {projection.num_facets} facets but the scene {n_facets}")
-        if per_material and (scene is None or scene.material is None):
-            raise ValueError("per_material=True needs a scene with a material index")
-
+            refined = _refined(scene, ff, light, camera, accuracy, plan_reflectance)
+            ff, bounces, self.accuracy_report = refined.form_factors, refined.bounces, refined.report
+            tol = refined.solver_tol if refined.method != "series" else tol
+            method = refined.method if refined.method != "series" else method
+        n_facets = _check_parts(scene, ff, refined is not None, bounces, camera, wl, projection, per_material)
         self.bounces = bounces
         self.tol = float(tol)
         self.method = method
@@ -174,13 +129,19 @@ class Interreflection(nn.Module):
         self.projection = projection
         self.reflectance_model = reflectance_model
         self.light = light if isinstance(light, str) else "custom"
+        self._register(ff, scene, n_facets, refined, light, shadows)
+
+    def _register(
+        self, ff: FormFactors, scene: Scene | None, n_facets: int, refined: Any, light: Any, shadows: str | bool
+    ) -> None:
+        """The buffers: matrix, areas, light factor, leaf → facet map (when refined), material index."""
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", UserWarning)  # sparse CSR beta warning
             self.register_buffer("matrix", ff.matrix.detach())
         self.register_buffer("areas", ff.areas.detach())
-        if leaf_user is not None:
-            self.register_buffer("light_factor", leaf_light.detach())
-            self.register_buffer("leaf_user", p.leaf_user.detach().to(ff.device))
+        if refined is not None:
+            self.register_buffer("light_factor", refined.light_factor.detach())
+            self.register_buffer("leaf_user", refined.leaf_user.detach().to(ff.device))
         else:
             self.register_buffer("light_factor", light_geometry(light, ff, scene, shadows=shadows))
             self.leaf_user = None
@@ -299,3 +260,83 @@ class Interreflection(nn.Module):
     def _apply(self, fn: Any, recurse: bool = True) -> Interreflection:  # drop the cached FormFactors view
         self._ff_cache = None
         return super()._apply(fn, recurse)
+
+
+# ---------------------------------------------------------------------------------------- construction steps
+def _scene_and_form_factors(arg: Any, planned: bool) -> tuple[Scene | None, FormFactors | None]:
+    """The scene (or ``None``) and form factors (``None`` when the planner computes them) of the first argument."""
+    if isinstance(arg, Scene):
+        return arg, None if planned else _compute_form_factors(arg)
+    if isinstance(arg, FormFactors):
+        return None, arg
+    if isinstance(arg, tuple) and len(arg) == 2 and isinstance(arg[0], Scene) and isinstance(arg[1], FormFactors):
+        return arg[0], arg[1]
+    raise TypeError(
+        f"scene_or_form_factors must be a Scene, a FormFactors or a (Scene, FormFactors) pair; got {type(arg).__name__}"
+    )
+
+
+def _camera(camera: Camera | str, wl: Tensor) -> Camera:
+    """A :class:`Camera` from a camera or a sensitivity name."""
+    if isinstance(camera, str):
+        camera = Camera.from_colour(camera, wl)
+    if not isinstance(camera, Camera):
+        raise TypeError(f"camera must be a Camera or a sensitivity name; got {type(camera).__name__}")
+    return camera
+
+
+@dataclass
+class _Refined:
+    """The planned refinement the layer solves on (from :func:`torch_interreflect.accuracy.plan`)."""
+
+    form_factors: FormFactors
+    light_factor: Tensor
+    leaf_user: Tensor
+    bounces: int | None
+    method: str
+    solver_tol: float
+    report: Any
+
+
+def _refined(
+    scene: Scene | None,
+    ff: FormFactors | None,
+    light: Any,
+    camera: Camera,
+    accuracy: float,
+    plan_reflectance: Tensor | None,
+) -> _Refined:
+    """Plan the refinement for ``accuracy`` (a bright grey reflectance by default, a D65 illuminant)."""
+    if scene is None or ff is not None:
+        raise ValueError("accuracy= needs the layer to be built from a Scene (it refines the scene itself)")
+    n_user = scene.num_facets
+    pr = plan_reflectance if plan_reflectance is not None else torch.full((n_user,), 0.9, dtype=scene.dtype)
+    cam_plan = Camera(camera.sensitivities.to(scene.dtype), camera.wavelengths.to(scene.dtype))
+    p = plan(scene, pr, light, "D65", cam_plan, accuracy=accuracy)
+    ff = FormFactors(p.form_factors.matrix, p.form_factors.areas, dict(p.form_factors.info))
+    return _Refined(ff, p.light_factor, p.leaf_user, p.bounces, p.method, p.solver_tol, p.report)
+
+
+def _check_parts(
+    scene: Scene | None,
+    ff: FormFactors,
+    refined: bool,
+    bounces: int | None,
+    camera: Camera,
+    wl: Tensor,
+    projection: nn.Module | None,
+    per_material: bool,
+) -> int:
+    """Typed errors for parts that do not fit together; returns the number of facets of inputs and outputs."""
+    if scene is not None and scene.num_facets != ff.num_facets and not refined:
+        raise ShapeError(f"the scene has {scene.num_facets} facets but the form factors {ff.num_facets}")
+    if bounces is not None and (isinstance(bounces, bool) or not isinstance(bounces, int) or bounces < 1):
+        raise ValueError(f"bounces must be None (infinite) or an integer >= 1; got {bounces!r}")
+    if camera.num_wavelengths != wl.shape[0]:
+        raise ShapeError(f"the camera has {camera.num_wavelengths} wavelengths but the grid has {wl.shape[0]}")
+    n_facets = scene.num_facets if refined and scene is not None else ff.num_facets
+    if projection is not None and getattr(projection, "num_facets", n_facets) != n_facets:
+        raise ShapeError(f"the projection has {projection.num_facets} facets but the scene {n_facets}")
+    if per_material and (scene is None or scene.material is None):
+        raise ValueError("per_material=True needs a scene with a material index")
+    return n_facets

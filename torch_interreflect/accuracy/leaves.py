@@ -1,0 +1,157 @@
+"""The leaves of adaptive refinement: which user facet each leaf belongs to, splitting, selection, averaging back.
+
+Every user facet starts as one leaf; :func:`select` picks the user facets that carry the excess estimated error
+and :func:`split` splits all their leaves in four. Values on the leaves are area-averaged back onto the user's
+facets (:func:`to_user`), so outputs keep the user's layout and total power.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import torch
+from torch import Tensor
+
+from .. import lights
+from ..formfactors.operator import FormFactors
+from ..geometry.scene import Scene, area_average
+from ..lights import light_geometry
+
+__all__ = [
+    "SKY_SAMPLES",
+    "Leaves",
+    "light_check",
+    "light_factor",
+    "relative_change",
+    "rms",
+    "select",
+    "split",
+    "subset",
+    "to_user",
+]
+
+
+@dataclass
+class Leaves:
+    """A refined scene and the user facet of each of its facets (leaves).
+
+    Attributes:
+        scene: The refined scene (``n`` leaves).
+        user: User facet of each leaf. Shape ``[n]``.
+    """
+
+    scene: Scene
+    user: Tensor
+
+
+def subset(scene: Scene, idx: Tensor) -> Scene:
+    """The facets ``idx`` of ``scene`` (corners, kind and material) as a scene."""
+    mat = scene.material[idx] if scene.material is not None else None
+    return Scene._from_parts(scene.corners[idx], scene.is_triangle[idx], mat, scene.material_names)
+
+
+def split(leaves: Leaves, sel: Tensor) -> Leaves:
+    """Split the selected leaves ``sel [n]`` in four (kept leaves first, then the children)."""
+    idx_keep = torch.nonzero(~sel).reshape(-1)
+    idx_sel = torch.nonzero(sel).reshape(-1)
+    fine, par = subset(leaves.scene, idx_sel).subdivide(2)
+    sc = leaves.scene
+    mat = None
+    if sc.material is not None:
+        mat = torch.cat([sc.material[idx_keep], fine.material])
+    scene = Scene._from_parts(
+        torch.cat([sc.corners[idx_keep], fine.corners]),
+        torch.cat([sc.is_triangle[idx_keep], fine.is_triangle]),
+        mat,
+        sc.material_names,
+    )
+    return Leaves(scene, leaves.user[torch.cat([idx_keep, idx_sel[par]])])
+
+
+def to_user(values: Tensor, leaves: Leaves, num_user: int) -> Tensor:
+    """Area-weighted average of leaf values ``[..., n, C]`` onto the user facets ``[..., F, C]``."""
+    return area_average(values, leaves.user, leaves.scene.areas, num_user)
+
+
+def relative_change(a: Tensor, b: Tensor) -> Tensor:
+    """Per-facet relative difference ``[F]``: largest over the columns of ``|a − b| / |b|`` (facets on dim −2)."""
+    d = (a - b).abs()
+    scale = b.abs()
+    floor = 1e-12 * scale.amax(dim=-2, keepdim=True).clamp_min(1e-300)
+    r = d / torch.maximum(scale, floor)
+    r = r.movedim(-2, 0).reshape(r.shape[-2], -1)
+    return r.amax(dim=1) if r.shape[1] else r.new_zeros(r.shape[0])
+
+
+def rms(x: Tensor) -> float:
+    """Root mean square of ``x`` (0 when empty)."""
+    return float(x.square().mean().sqrt()) if x.numel() else 0.0
+
+
+#: Directions per axis of the ray-cast parts of the sky (:func:`torch_interreflect.lights.sky`), and the smaller
+#: count :func:`light_check` compares with.
+SKY_SAMPLES, SKY_CHECK_SAMPLES = 16, 24
+
+
+def light_factor(light: Any, scene: Scene, K: FormFactors, user: Tensor, num_user: int) -> Tensor:
+    """Geometric factor ``g [n]`` of the light on the leaves: ``E0 = g ⊗ spectrum``."""
+    if isinstance(light, str) and light == "sky":
+        one = torch.ones(1, dtype=scene.dtype, device=scene.device)
+        return lights.sky(scene, K, one, samples=SKY_SAMPLES)[:, 0]
+    if isinstance(light, Tensor) and light.ndim == 1 and light.shape[0] == num_user and num_user != 3:
+        if light.dtype == torch.bool:
+            return light_geometry(light.to(scene.device)[user], K, scene)
+        return light.to(device=scene.device, dtype=scene.dtype)[user]  # a factor per user facet: per leaf
+    return light_geometry(light, K, scene)
+
+
+def light_check(light: Any, scene: Scene, K: FormFactors) -> Tensor | None:
+    """The light factor ``[n]`` cast again with :data:`SKY_CHECK_SAMPLES` directions per axis, for a light with
+    ray-cast parts (the sky); ``None`` for the others (deterministic: their error is discretisation).
+
+    The sky's open part on facets with occluded pairs and its back-face coverage are Monte Carlo estimates whose
+    error does not fall with refinement (each leaf gets the same rays); the difference between the two estimates
+    measures it.
+    """
+    if not (isinstance(light, str) and light == "sky"):
+        return None
+    one = torch.ones(1, dtype=scene.dtype, device=scene.device)
+    return lights.sky(scene, K, one, samples=SKY_CHECK_SAMPLES)[:, 0]
+
+
+def _chosen(est: Tensor, target: float) -> list[int]:
+    """User facets carrying the excess error: largest estimates first, until the others alone meet ``target``
+    (every not-yet-measured facet when some are)."""
+    if bool(torch.isinf(est).any()):
+        return torch.nonzero(torch.isinf(est)).reshape(-1).tolist()
+    order = torch.argsort(est, descending=True).tolist()
+    sq = est.square()
+    total = float(sq.sum())
+    limit = 0.8 * target * target * est.numel()
+    chosen: list[int] = []
+    for i in order:  # the fewest facets without which the rest meets the target
+        if total <= limit and chosen:
+            break
+        chosen.append(i)
+        total -= float(sq[i])
+    return chosen
+
+
+def select(leaves: Leaves, est: Tensor, target: float, max_facets: int) -> Tensor | None:
+    """Leaves to split ``[n]``: every leaf of the user facets that carry the excess error, as many as
+    ``max_facets`` allows (``None`` when no facet fits)."""
+    n = leaves.scene.num_facets
+    user = leaves.user.cpu()
+    count = torch.bincount(user, minlength=est.numel())
+    room = max_facets - n
+    picked = []
+    for i in _chosen(est, target):  # each split adds three leaves per leaf
+        if 3 * int(count[i]) <= room:
+            picked.append(i)
+            room -= 3 * int(count[i])
+    if not picked:
+        return None
+    pick = torch.zeros(est.numel(), dtype=torch.bool)
+    pick[picked] = True
+    return pick[user].to(leaves.user.device)

@@ -1,0 +1,245 @@
+"""Planning: the refinement and settings that reach a requested accuracy (:func:`plan`), kept as a :class:`Plan`
+that renders differentiably (:meth:`Plan.apply`). How each source of error is bounded: :mod:`.render`."""
+
+from __future__ import annotations
+
+import math
+import time
+import warnings
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from ..camera.sensor import Camera
+from ..errors import AccuracyWarning, ShapeError, ValueRangeError
+from ..formfactors.operator import FormFactors
+from ..geometry.scene import Scene, area_average
+from ..solver.api import solve
+from .leaves import rms
+from .refine import Problem, Refinement, refine
+from .report import AccuracyReport, RenderResult
+from .settings import Settings, budget_for, choose_settings, quadrature_tol_for
+from .wavelengths import grid_of, interp_matrix, spectra
+
+__all__ = ["Plan", "plan"]
+
+
+@dataclass
+class Plan:
+    """The refined scene and settings :func:`plan` chose; :meth:`apply` renders with them (differentiably).
+
+    Attributes:
+        scene: The user's scene. ``leaves``: the refined scene that is solved; ``leaf_user [n]``: the user facet of
+            each leaf.
+        form_factors: Form factors of the leaves (sparsified when that paid). ``light_factor [n]``: ``g`` of the
+            light on the leaves (``E0 = g ⊗ spectrum``).
+        grid: The full wavelength grid ``[L]``; ``nodes``: indices of the wavelengths solved ``[L']``.
+        method, bounces, solver_tol: How the final system is solved.
+        report: What was chosen and the estimated error (for the reflectance and light the plan was made with).
+    """
+
+    scene: Scene
+    leaves: Scene
+    leaf_user: Tensor
+    form_factors: FormFactors
+    light_factor: Tensor
+    grid: Tensor
+    nodes: Tensor
+    method: str
+    bounces: int | None
+    solver_tol: float
+    report: AccuracyReport
+
+    def apply(
+        self, reflectance: Tensor, illuminant: Tensor | str | float = "D65", camera: Camera | None = None
+    ) -> RenderResult:
+        """Render with the planned refinement and settings: differentiable in reflectance and illuminant.
+
+        Args:
+            reflectance: Per user facet, in [0, 1]. Shape ``[..., F, L]`` or ``[..., F]``.
+            illuminant: Spectrum ``[..., L]`` on the grid, or a name / CCT.
+            camera: Camera for ``rgb`` (its grid must be the plan's).
+
+        Returns:
+            A :class:`RenderResult` on the user's facets; its report is the plan's.
+
+        Shape:
+            - reflectance: ``[..., F, L]`` or ``[..., F]``; illuminant: ``[..., L]``
+            - output irradiance, radiance: ``[..., F, L]``; rgb: ``[..., F, C]``
+        """
+        F, L = self.scene.num_facets, self.grid.numel()
+        S, r = spectra(self.grid, illuminant, reflectance, F)
+        nodes, user = self.nodes, self.leaf_user
+        refl_leaf = r[..., user, :][..., nodes]
+        g = self.light_factor
+        e0 = g.to(refl_leaf.dtype)[:, None].expand(-1, refl_leaf.shape[-1])
+        if self.method == "series":
+            h = solve(self.form_factors, refl_leaf, e0, bounces=self.bounces)
+        else:
+            h = solve(self.form_factors, refl_leaf, e0, tol=self.solver_tol, method=self.method)
+        h_full = h @ interp_matrix(self.grid[nodes], self.grid).to(h.dtype) if nodes.numel() < L else h
+        E_leaf = S[..., None, :] * h_full
+        E = area_average(E_leaf, user, self.leaves.areas, F)
+        rgb = None
+        if camera is not None:
+            if camera.num_wavelengths != L:
+                raise ShapeError(f"the camera has {camera.num_wavelengths} wavelengths but the plan's grid {L}")
+            rgb = area_average(camera(r[..., user, :] * E_leaf / math.pi), user, self.leaves.areas, F)
+        return RenderResult(E, r * E / math.pi, rgb, self.report)
+
+
+def plan(
+    scene: Scene,
+    reflectance: Tensor,
+    light: str | Tensor | Sequence[float] = "uniform",
+    illuminant: Tensor | str | float = "D65",
+    camera: Camera | None = None,
+    *,
+    accuracy: float = 1e-2,
+    wavelengths: Tensor | None = None,
+    max_facets: int = 12_000,
+    max_iterations: int = 12,
+    progress: bool | None = None,
+) -> Plan:
+    """Choose the refinement and settings that reach ``accuracy`` for this reflectance and light.
+
+    Same arguments as :func:`render` (which is ``plan(...).apply(...)``). Nothing here is differentiated.
+
+    Returns:
+        A :class:`Plan`.
+
+    Example:
+        >>> import torch, torch_interreflect as ti
+        >>> scene = ti.scenes.v_groove(60.0, divisions=2, dtype=torch.float64)
+        >>> p = ti.accuracy.plan(scene, torch.full((8,), 0.5, dtype=torch.float64), accuracy=2e-2)
+        >>> p.apply(torch.full((8,), 0.4, dtype=torch.float64)).irradiance.shape
+        torch.Size([8, 31])
+    """
+    t_start = time.perf_counter()
+    _check_request(scene, accuracy, max_facets)
+    pb = _problem(scene, reflectance, light, illuminant, camera, accuracy, wavelengths)
+    show = progress if progress is not None else scene.num_facets >= 2000 or accuracy < 3e-3
+    st = refine(pb, max_facets=max_facets, max_iterations=max_iterations, show=show, t_start=t_start)
+    t = time.perf_counter()
+    r_max = float(pb.r.max()) if pb.r.numel() else 0.0
+    settings = choose_settings(st.K, st.h, st.leaves, pb.F, r_max, accuracy, pb.budget)  # type: ignore[arg-type]
+    pb.seconds["sparsify"] = time.perf_counter() - t
+    report = _report(pb, st, settings, t_start)
+    if not report.reached:
+        warnings.warn(
+            f"render: requested accuracy {accuracy:.3g} not reached; estimated {report.estimated:.3g} after "
+            f"{st.iterations} refinements ({st.leaves.scene.num_facets} facets), stopped by "
+            f"{st.reason or _over_budget(report)}. Raise max_facets / max_iterations or ask for less.",
+            AccuracyWarning,
+            stacklevel=3,
+        )
+    return Plan(
+        scene,
+        st.leaves.scene,
+        st.leaves.user,
+        settings.form_factors,
+        st.g,
+        pb.grid,
+        st.nodes,  # type: ignore[arg-type]
+        settings.method,
+        settings.bounces,
+        settings.solver_tol,
+        report,
+    )
+
+
+def _over_budget(report: AccuracyReport) -> str:
+    """Why the estimate is above the request although refinement met its share."""
+    light = report.parts.get("light", 0.0)
+    if light > 0.25 * report.requested:
+        return (
+            f"the ray-cast part of the light (the sky's open part where facets occlude each other: {light:.3g} "
+            "relative, measured by casting its rays again; refinement does not lower it)"
+        )
+    return "the error budget"
+
+
+def _check_request(scene: Scene, accuracy: float, max_facets: int) -> None:
+    """Typed errors for a request the planner cannot serve."""
+    if not isinstance(scene, Scene):
+        raise TypeError(f"plan expects a Scene; got {type(scene).__name__}")
+    if isinstance(accuracy, bool) or not isinstance(accuracy, (int, float)) or not math.isfinite(accuracy):
+        raise ValueRangeError(f"accuracy must be a finite number in (0, 0.5]; got {accuracy!r}")
+    if not (0 < accuracy <= 0.5):
+        raise ValueRangeError(f"accuracy must lie in (0, 0.5] (a relative error); got {accuracy}")
+    floor = 1e3 * torch.finfo(scene.dtype).eps
+    if accuracy < floor:
+        raise ValueRangeError(
+            f"accuracy {accuracy:.3g} is below what {scene.dtype} can resolve in this model (about {floor:.1g}: "
+            "quadrature, solver and averaging each lose a few digits); use a float64 scene or ask for less"
+        )
+    if not isinstance(max_facets, int) or max_facets < scene.num_facets:
+        raise ValueError(f"max_facets must be an integer >= the scene's {scene.num_facets} facets; got {max_facets!r}")
+
+
+def _problem(
+    scene: Scene,
+    reflectance: Tensor,
+    light: str | Tensor | Sequence[float],
+    illuminant: Tensor | str | float,
+    camera: Camera | None,
+    accuracy: float,
+    wavelengths: Tensor | None,
+) -> Problem:
+    """The validated, detached inputs on the grid, and the budget."""
+    grid = grid_of(camera, wavelengths, scene.dtype, scene.device)
+    S, r = spectra(grid, illuminant, reflectance, scene.num_facets)
+    budget = budget_for(camera)
+    return Problem(
+        scene,
+        grid,
+        S.detach(),
+        r.detach(),
+        camera,
+        light,
+        float(accuracy),
+        budget,
+        quadrature_tol_for(accuracy, budget),
+        max(1e-10, 1e-3 * accuracy),
+    )
+
+
+def _report(pb: Problem, st: Refinement, settings: Settings, t_start: float) -> AccuracyReport:
+    """The :class:`AccuracyReport`: parts per source, their sum, and what was chosen."""
+    F = pb.F
+    parts = {
+        "discretisation": rms(st.est),
+        "form_factors": pb.quadrature_tol,
+        "sparsification": settings.sparse_bound,
+        "solver": settings.solver_bound,
+        "wavelengths": st.wavelength_error,
+        "light": rms(st.light_error) if st.light_error is not None else 0.0,
+    }
+    total = sum(v for v in parts.values() if math.isfinite(v))
+    light = st.light_error if st.light_error is not None else torch.zeros_like(st.est)
+    per_facet = st.est + light + (total - parts["discretisation"] - parts["light"])
+    pb.seconds["total"] = time.perf_counter() - t_start
+    return AccuracyReport(
+        requested=pb.accuracy,
+        estimated=total,
+        estimated_max=float(per_facet.max()) if F else 0.0,
+        per_facet=per_facet,
+        parts=parts,
+        reached=total <= pb.accuracy,
+        leaves=st.leaves.scene.num_facets,
+        leaves_per_facet=torch.bincount(st.leaves.user.cpu(), minlength=F),
+        iterations=st.iterations,
+        quadrature_tol=pb.quadrature_tol,
+        sparsified=settings.form_factors is not st.K,
+        dropped=settings.dropped,
+        dropped_row_mass=settings.dropped_row_mass,
+        method=settings.method,
+        bounces=settings.bounces,
+        solver_tol=settings.solver_tol,
+        wavelengths=pb.grid[st.nodes],
+        wavelength_error=st.wavelength_error,
+        seconds=pb.seconds,
+        history=st.history,
+    )

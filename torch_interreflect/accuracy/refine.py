@@ -1,0 +1,240 @@
+"""The refinement loop of :func:`~torch_interreflect.accuracy.plan`: solve, estimate, split, until the estimated
+discretisation error meets its share.
+
+The error of a user facet is estimated from the change of its average between two refinements,
+``|x_k − x_{k−1}| · q/(1 − q)`` with ``q`` the observed ratio of successive changes (0.5, first order, until two
+changes are known; clamped to ``[Q_MIN, Q_MAX]``). Facets whose form factors rest on ray-cast visibility always get
+the slowest ratio, :data:`Q_MAX`.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+import torch
+from torch import Tensor
+from tqdm.auto import tqdm
+
+from ..camera.sensor import Camera
+from ..formfactors.operator import FormFactors
+from ..formfactors.quadrature import form_factors as compute_form_factors
+from ..geometry.scene import Scene
+from ..solver.api import solve
+from .leaves import Leaves, light_check, light_factor, relative_change, rms, select, split, to_user
+from .wavelengths import interp_matrix, nested_subsets
+
+__all__ = ["Q_MAX", "Q_MIN", "STALL", "Problem", "Refinement", "refine"]
+
+#: Range of the convergence ratio ``q`` (successive changes of a facet's value when its level doubles) used in the
+#: estimate ``change · q / (1 − q)``: first order gives 0.5, second order 0.25; slower convergence up to 0.8 is
+#: believed, faster than 1/3 is not.
+Q_MIN, Q_MAX = 1 / 3, 0.8
+
+
+#: Refinement stops (and warns) when two refinements lowered the estimated discretisation error by less than
+#: this factor: the error is then not falling with the facet size (the Cornell box's visibility), and going on
+#: would spend minutes without reaching the target.
+STALL = 0.8
+
+
+@dataclass
+class Problem:
+    """What the planner works on (all detached) and the time it spends per stage.
+
+    Attributes:
+        scene: The user's scene (``F`` facets). grid: Wavelengths ``[L]``. S: Illuminant ``[..., L]``.
+        r: Reflectance ``[..., F, L]``. camera: For RGB targets, else ``None``. light: As :func:`render` takes it.
+        accuracy: The request; ``budget`` its share per source; ``quadrature_tol`` the form-factor tolerance;
+        ``plan_tol`` the solver tolerance while planning.
+    """
+
+    scene: Scene
+    grid: Tensor
+    S: Tensor
+    r: Tensor
+    camera: Camera | None
+    light: Any
+    accuracy: float
+    budget: dict[str, float]
+    quadrature_tol: float
+    plan_tol: float
+    seconds: dict[str, float] = field(default_factory=lambda: {"form_factors": 0.0, "light": 0.0, "solve": 0.0})
+
+    @property
+    def F(self) -> int:
+        return self.scene.num_facets
+
+    def rgb_of(self, h_nodes: Tensor, nodes: Tensor, refl: Tensor) -> Tensor:
+        """Camera RGB ``[..., n, C]`` from the gain ``h`` on ``nodes`` (``E = S · interp(h)``)."""
+        L = self.grid.numel()
+        h = h_nodes @ interp_matrix(self.grid[nodes], self.grid) if nodes.numel() < L else h_nodes
+        return self.camera(refl * (self.S[..., None, :] * h) / math.pi)  # type: ignore[misc]
+
+    def solve_gain(self, K: FormFactors, refl: Tensor, g: Tensor) -> Tensor:
+        """Gain ``h`` with ``(I − F R) h = g`` per column, to the planning tolerance."""
+        t = time.perf_counter()
+        h = solve(K, refl, g[:, None].expand(-1, refl.shape[-1]), tol=self.plan_tol)
+        self.seconds["solve"] += time.perf_counter() - t
+        return h
+
+
+@dataclass
+class Refinement:
+    """State of the refinement loop; after :func:`refine`, the last level solved.
+
+    Attributes:
+        leaves: The current leaves. K, g, h: their form factors, light factor ``[n]`` and gain ``[..., n, L']``.
+        nodes: Indices of the wavelengths solved ``[L']``; ``wavelength_error`` the RGB error of that subset.
+        est: Estimated discretisation error per user facet ``[F]`` (float64, CPU; inf until measured).
+        sampled: User facets whose rows rest on ray-cast visibility ``[F]``.
+        light_error: Relative error per user facet of the ray-cast part of the light ``[F]`` (measured on the
+            user's facets, before any refinement: it does not fall with refinement).
+        history: Per level: leaves, estimate, seconds. iterations: Refinement steps. reason: Why it stopped
+            short of the target ("" when it did not).
+    """
+
+    leaves: Leaves
+    nodes: Tensor
+    est: Tensor
+    prev_delta: Tensor
+    touched: Tensor
+    sampled: Tensor
+    wavelength_error: float = 0.0
+    light_error: Tensor | None = None
+    prev_user: Tensor | None = None
+    K: FormFactors | None = None
+    g: Tensor | None = None
+    h: Tensor | None = None
+    history: list[dict[str, float]] = field(default_factory=list)
+    iterations: int = 0
+    reason: str = ""
+
+
+def _start(pb: Problem) -> Refinement:
+    F, dev = pb.F, pb.scene.device
+    return Refinement(
+        leaves=Leaves(pb.scene, torch.arange(F, device=dev)),
+        nodes=torch.arange(pb.grid.numel(), device=dev),
+        est=torch.full((F,), math.inf, dtype=torch.float64),
+        prev_delta=torch.full((F,), math.nan, dtype=torch.float64),
+        touched=torch.zeros(F, dtype=torch.bool),
+        sampled=torch.zeros(F, dtype=torch.bool),
+    )
+
+
+def _kernel_and_light(pb: Problem, st: Refinement) -> None:
+    """Form factors and light factor of the current leaves (and which user facets rest on ray casting)."""
+    t = time.perf_counter()
+    st.K = compute_form_factors(st.leaves.scene, tol=pb.quadrature_tol, progress=False)
+    occ = st.K.info.get("occluded_facets")
+    if occ is not None and bool(occ.any()):  # user facets whose rows rest on ray-cast visibility
+        st.sampled[st.leaves.user.cpu()[occ.cpu()]] = True
+    pb.seconds["form_factors"] += time.perf_counter() - t
+    t = time.perf_counter()
+    st.g = light_factor(pb.light, st.leaves.scene, st.K, st.leaves.user, pb.F)
+    pb.seconds["light"] += time.perf_counter() - t
+
+
+def _choose_wavelengths(pb: Problem, st: Refinement, refl_leaf: Tensor) -> Tensor:
+    """Solve on the full grid once and keep the coarsest nested subset within the wavelength share; returns the
+    gain on that subset."""
+    dev = pb.grid.device
+    h_full = pb.solve_gain(st.K, refl_leaf, st.g)  # type: ignore[arg-type]
+    rgb_full = pb.rgb_of(h_full, st.nodes, refl_leaf)
+    for sub in nested_subsets(pb.grid.numel()):
+        sub = sub.to(dev)
+        err = rms(relative_change(pb.rgb_of(h_full[..., sub], sub, refl_leaf), rgb_full))
+        if err <= pb.budget["wavelengths"] * pb.accuracy or sub.numel() == pb.grid.numel():
+            st.nodes, st.wavelength_error = sub, err
+            break
+    return h_full[..., st.nodes]  # the full-grid solve already holds the subset
+
+
+def _light_error(pb: Problem, st: Refinement, refl_leaf: Tensor) -> Tensor:
+    """Relative change per user facet ``[F]`` of the gain when the ray-cast part of the light is cast again
+    (zeros for lights without one)."""
+    other = light_check(pb.light, st.leaves.scene, st.K)  # type: ignore[arg-type]
+    if other is None:
+        return torch.zeros(pb.F, dtype=torch.float64)
+    h_other = pb.solve_gain(st.K, refl_leaf[..., st.nodes], other)  # type: ignore[arg-type]
+    return relative_change(h_other, st.h).to(torch.float64).cpu()  # type: ignore[arg-type]
+
+
+@torch.no_grad()
+def _solve_level(pb: Problem, st: Refinement) -> Tensor:
+    """Solve the current leaves; returns the output (irradiance or RGB) on the user's facets ``[..., F, C]``."""
+    _kernel_and_light(pb, st)
+    refl_leaf = pb.r[..., st.leaves.user, :]
+    if st.iterations == 0 and pb.camera is not None:
+        st.h = _choose_wavelengths(pb, st, refl_leaf)
+    else:
+        st.h = pb.solve_gain(st.K, refl_leaf[..., st.nodes], st.g)  # type: ignore[arg-type]
+    if st.light_error is None:  # level 0 (the leaves are the user's facets): the ray-cast light's error
+        st.light_error = _light_error(pb, st, refl_leaf)
+    vals = pb.rgb_of(st.h, st.nodes, refl_leaf) if pb.camera is not None else st.h * pb.S[..., None, st.nodes]
+    return to_user(vals, st.leaves, pb.F)
+
+
+def _update_estimate(st: Refinement, user_vals: Tensor) -> None:
+    """``est = change · q / (1 − q)`` on the facets refined last; the others keep theirs (or the change)."""
+    if st.prev_user is None:
+        return
+    delta = relative_change(st.prev_user, user_vals).to(torch.float64).cpu()
+    q = (delta / st.prev_delta).nan_to_num(0.5).clamp(Q_MIN, Q_MAX)
+    q = torch.where(st.sampled, torch.full_like(q, Q_MAX), q)  # sampled visibility converges slowly
+    st.est = torch.where(st.touched, delta * q / (1 - q), torch.maximum(st.est, delta))
+    st.prev_delta = torch.where(st.touched, delta, st.prev_delta)
+
+
+def _stop_reason(pb: Problem, st: Refinement, disc: float, max_iterations: int) -> str | None:
+    """``""`` when the target is met, a reason when refinement has to stop short of it, ``None`` to go on."""
+    if disc <= pb.budget["discretisation"] * pb.accuracy:
+        return ""
+    if st.iterations >= max_iterations:
+        return f"max_iterations={max_iterations}"
+    if len(st.history) >= 3 and disc > STALL * st.history[-3]["estimate"]:
+        return (
+            f"a stalled estimate ({st.history[-3]['estimate']:.3g} -> {disc:.3g} over the last two refinements; "
+            "the scene converges too slowly under refinement for this target)"
+        )
+    return None
+
+
+def _split_step(pb: Problem, st: Refinement, user_vals: Tensor, max_facets: int) -> bool:
+    """Split the leaves of the user facets carrying the excess error; ``False`` when none fits ``max_facets``."""
+    sel = select(st.leaves, st.est, pb.budget["discretisation"] * pb.accuracy, max_facets)
+    if sel is None:
+        return False
+    st.touched = torch.zeros(pb.F, dtype=torch.bool)
+    st.touched[st.leaves.user[sel].cpu()] = True
+    st.prev_user = user_vals
+    st.leaves = split(st.leaves, sel)
+    st.iterations += 1
+    return True
+
+
+def refine(pb: Problem, *, max_facets: int, max_iterations: int, show: bool, t_start: float) -> Refinement:
+    """Refine until the estimated discretisation error meets its share, or a limit stops it (``reason``)."""
+    st = _start(pb)
+    bar = tqdm(total=max_iterations + 1, desc="render", unit="step", leave=False, disable=None if show else True)
+    while True:
+        user_vals = _solve_level(pb, st)
+        _update_estimate(st, user_vals)
+        disc = rms(st.est)
+        st.history.append(
+            {"leaves": st.leaves.scene.num_facets, "estimate": disc, "seconds": time.perf_counter() - t_start}
+        )
+        bar.set_postfix(facets=st.leaves.scene.num_facets, estimate=f"{disc:.2g}")
+        bar.update(1)
+        reason = _stop_reason(pb, st, disc, max_iterations)
+        if reason is not None:
+            st.reason = reason
+            break
+        if not _split_step(pb, st, user_vals, max_facets):
+            st.reason = f"max_facets={max_facets}"
+            break
+    bar.close()
+    return st
