@@ -7,7 +7,7 @@ STAMP  := $(VENV)/.installed-dev
 OUT    ?= out
 
 .PHONY: install demo train-cc test lint bench bench-install bench-speed bench-solver bench-formfactors \
-	bench-accuracy bench-hierarchical bench-hierarchical-quick clean
+	bench-accuracy bench-hierarchical bench-hierarchical-quick bench-images clean
 
 $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
@@ -43,6 +43,9 @@ bench-solver: $(STAMP)
 
 bench-accuracy: $(STAMP)
 	$(BIN)/python -m benchmarks.accuracy --quick
+
+bench-images: bench-install
+	DRJIT_LIBLLVM_PATH=$${DRJIT_LIBLLVM_PATH:-libLLVM.so.19.1} $(BIN)/python benchmarks/images.py --quick
 
 bench-install: $(STAMP)
 	command -v apt-get >/dev/null && (apt-get update -qq && apt-get install -y -qq libllvm19) || true
