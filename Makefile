@@ -45,7 +45,7 @@ bench-accuracy: $(STAMP)
 	$(BIN)/python -m benchmarks.accuracy --quick
 
 bench-images: bench-install
-	DRJIT_LIBLLVM_PATH=$${DRJIT_LIBLLVM_PATH:-libLLVM.so.19.1} $(BIN)/python benchmarks/images.py --quick
+	DRJIT_LIBLLVM_PATH=$${DRJIT_LIBLLVM_PATH:-libLLVM.so.19.1} $(BIN)/python -m benchmarks.images --quick
 
 bench-install: $(STAMP)
 	command -v apt-get >/dev/null && (apt-get update -qq && apt-get install -y -qq libllvm19) || true

@@ -24,22 +24,17 @@ from __future__ import annotations
 import argparse
 import math
 import os
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 import torch
 
-HERE = Path(__file__).resolve().parent
-sys.path.insert(0, str(HERE))
-sys.path.insert(0, str(HERE.parent))
-
-import mitsuba_ref as mr  # noqa: E402
-
-import torch_interreflect as ti  # noqa: E402
-from torch_interreflect.camera import View, gather_operator, gathered_radiance  # noqa: E402
-from torch_interreflect.geometry.raycast import RayCaster  # noqa: E402
+import torch_interreflect as ti
+from benchmarks._common import HERE
+from benchmarks._common import mitsuba as mr
+from torch_interreflect.camera import View, gather_operator, gathered_radiance
+from torch_interreflect.geometry.raycast import RayCaster
 
 REF_DIR = HERE / "references" / "images"
 RESULTS = HERE / "results"
