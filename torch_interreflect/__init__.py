@@ -19,7 +19,7 @@ from . import accuracy, camera, errors, formfactors, geometry, inverse, layers, 
 from ._deprecation import moved_attribute
 from ._version import __version__
 from .accuracy import AccuracyReport, RenderResult, render
-from .camera import Camera, spectral_to_rgb
+from .camera import Camera, View, spectral_to_rgb
 from .formfactors import FormFactors, HierarchicalFormFactors, form_factors, hierarchical_form_factors
 from .geometry import Scene, scenes
 from .solver import SolveInfo, radiance, solve
@@ -32,6 +32,7 @@ __all__ = [
     "RenderResult",
     "Scene",
     "SolveInfo",
+    "View",
     "__version__",
     "accuracy",
     "camera",

@@ -8,11 +8,14 @@ import time
 import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import torch
 from torch import Tensor
 
+from ..camera.gather import render_view
 from ..camera.sensor import Camera
+from ..camera.view import View
 from ..errors import AccuracyWarning, ShapeError, ValueRangeError
 from ..formfactors.operator import FormFactors
 from ..geometry.scene import Scene, area_average
@@ -38,6 +41,7 @@ class Plan:
         grid: The full wavelength grid ``[L]``; ``nodes``: indices of the wavelengths solved ``[L']``.
         method, bounces, solver_tol: How the final system is solved.
         report: What was chosen and the estimated error (for the reflectance and light the plan was made with).
+        light: The light as :func:`plan` got it (per user facet); images gather their direct light from it.
     """
 
     scene: Scene
@@ -51,9 +55,16 @@ class Plan:
     bounces: int | None
     solver_tol: float
     report: AccuracyReport
+    light: Any = "uniform"
 
     def apply(
-        self, reflectance: Tensor, illuminant: Tensor | str | float = "D65", camera: Camera | None = None
+        self,
+        reflectance: Tensor,
+        illuminant: Tensor | str | float = "D65",
+        camera: Camera | None = None,
+        *,
+        view: View | None = None,
+        shading: str = "gather",
     ) -> RenderResult:
         """Render with the planned refinement and settings: differentiable in reflectance and illuminant.
 
@@ -61,13 +72,17 @@ class Plan:
             reflectance: Per user facet, in [0, 1]. Shape ``[..., F, L]`` or ``[..., F]``.
             illuminant: Spectrum ``[..., L]`` on the grid, or a name / CCT.
             camera: Camera for ``rgb`` (its grid must be the plan's).
+            view: A pinhole view (:class:`~torch_interreflect.camera.View`): the result then carries ``image``,
+                linear camera RGB ``[..., C, H, W]`` (spectral radiance ``[..., L, H, W]`` without a camera), shaded
+                from the solved leaves by a final gather per pixel (:func:`~torch_interreflect.camera.render_view`).
+            shading: ``"gather"`` (per-pixel final gather, the default) or ``"flat"`` (each leaf one colour).
 
         Returns:
             A :class:`RenderResult` on the user's facets; its report is the plan's.
 
         Shape:
             - reflectance: ``[..., F, L]`` or ``[..., F]``; illuminant: ``[..., L]``
-            - output irradiance, radiance: ``[..., F, L]``; rgb: ``[..., F, C]``
+            - output irradiance, radiance: ``[..., F, L]``; rgb: ``[..., F, C]``; image: ``[..., C, H, W]``
         """
         F, L = self.scene.num_facets, self.grid.numel()
         S, r = spectra(self.grid, illuminant, reflectance, F)
@@ -87,7 +102,18 @@ class Plan:
             if camera.num_wavelengths != L:
                 raise ShapeError(f"the camera has {camera.num_wavelengths} wavelengths but the plan's grid {L}")
             rgb = area_average(camera(r[..., user, :] * E_leaf / math.pi), user, self.leaves.areas, F)
-        return RenderResult(E, r * E / math.pi, rgb, self.report)
+        image = None
+        if view is not None:
+            r_leaf = r[..., user, :].expand(*E_leaf.shape[:-2], -1, -1)
+            image = render_view(self.leaves, r_leaf, E_leaf, S, camera, view, self._leaf_light(), shading=shading)
+        return RenderResult(E, r * E / math.pi, rgb, self.report, image)
+
+    def _leaf_light(self) -> Any:
+        """The light on the leaves: per-user-facet tensors (a factor or a mask) follow each leaf's user facet."""
+        light = self.light
+        if isinstance(light, Tensor) and light.ndim == 1 and light.numel() == self.scene.num_facets != 3:
+            return light.to(self.leaf_user.device)[self.leaf_user]
+        return light
 
 
 def plan(
@@ -147,6 +173,7 @@ def plan(
         settings.bounces,
         settings.solver_tol,
         report,
+        light,
     )
 
 

@@ -46,6 +46,7 @@ from collections.abc import Sequence
 from torch import Tensor
 
 from ..camera.sensor import Camera
+from ..camera.view import View
 from ..geometry.scene import Scene
 from .plan import Plan, plan
 from .refine import STALL
@@ -67,6 +68,8 @@ def render(
     max_facets: int = 12_000,
     max_iterations: int = 12,
     progress: bool | None = None,
+    view: View | None = None,
+    shading: str = "gather",
 ) -> RenderResult:
     """Irradiance (and camera RGB) of a scene, computed to a requested relative accuracy.
 
@@ -93,9 +96,13 @@ def render(
         max_iterations: Most refinement steps. Refinement also stops when two steps lowered the estimate by less
             than :data:`STALL` (then the target is out of reach at any affordable size: a warning says so).
         progress: Show a progress bar (default: when the work is large).
+        view: A pinhole view (:class:`~torch_interreflect.camera.View`): also return ``image``, shaded per pixel by a
+            final gather from the solved (refined) facets (:meth:`Plan.apply`).
+        shading: ``"gather"`` (default) or ``"flat"`` (each solved facet one colour) for ``image``.
 
     Returns:
-        A :class:`RenderResult`: ``irradiance``, ``radiance``, ``rgb`` and the :class:`AccuracyReport`.
+        A :class:`RenderResult`: ``irradiance``, ``radiance``, ``rgb``, ``image`` (with a ``view``) and the
+        :class:`AccuracyReport`.
 
     Raises:
         ValueRangeError: ``accuracy`` outside ``(0, 0.5]`` or below what the scene's dtype can resolve.
@@ -128,4 +135,4 @@ def render(
         max_iterations=max_iterations,
         progress=progress,
     )
-    return p.apply(reflectance, illuminant, camera)
+    return p.apply(reflectance, illuminant, camera, view=view, shading=shading)

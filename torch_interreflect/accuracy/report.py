@@ -88,9 +88,12 @@ class RenderResult:
         radiance: ``R E / π`` in W·sr⁻¹·m⁻²·nm⁻¹. Shape ``[..., F, L]``.
         rgb: Camera responses when a camera was given, else ``None``. Shape ``[..., F, C]``.
         report: What was chosen and the estimated error.
+        image: With a ``view``: the image (linear camera RGB ``[..., C, H, W]``, or spectral radiance
+            ``[..., L, H, W]`` without a camera), else ``None``.
     """
 
     irradiance: Tensor
     radiance: Tensor
     rgb: Tensor | None
     report: AccuracyReport
+    image: Tensor | None = None
