@@ -20,7 +20,8 @@ from .dense import dense_solve
 from .krylov import cg_block, neumann_block
 from .plan import Component, SolvePlan, Stats
 
-__all__ = ["broadcast_facet_shapes", "component_block", "from_columns", "solve_columns", "to_columns"]
+__all__ = ["broadcast_facet_shapes", "check_closed_r1", "component_block", "from_columns", "solve_columns",
+           "to_columns"]
 
 
 # ----------------------------------------------------------------------------------------------- the plan
@@ -53,8 +54,9 @@ def solve_columns(
         areas: ``[F]`` facet areas (same dtype as ``b``).
         r: ``[F, N]`` reflectance columns; ``b``: ``[F, N]`` right-hand sides.
         method: ``"dense"``, ``"cg"`` or ``"neumann"``.
-        factors: dense LU factors returned by an earlier call with the same ``r`` (reused for the adjoint).
-        keep_factors: return the dense LU factors (3 tensors per block; empty tensors where not kept).
+        factors: dense factors returned by an earlier call with the same ``r`` (reused for the adjoint).
+        keep_factors: return the dense factors (3 tensors per block: Cholesky or LU factors, pivots (empty for
+            Cholesky), distinct-column index; empty tensors where not kept).
 
     Returns:
         ``x`` ``[F, N]`` and the list of kept factors.
@@ -63,7 +65,8 @@ def solve_columns(
     x = b.clone()
     out_factors: list[Tensor] = []
     fpos = 0
-    delta = math.sqrt(torch.finfo(b.dtype).eps)
+    closed_tol = max(plan.kernel_tol, math.sqrt(torch.finfo(b.dtype).eps))
+    exact = plan.reciprocity_error <= 16 * torch.finfo(b.dtype).eps
     stats.skipped = plan.isolated
     empty = b.new_empty(0)
     for comp in plan.components:
@@ -74,14 +77,7 @@ def solve_columns(
         if not bool(refl.any()):
             stats.skipped += comp.size
             continue
-        all_one = (rc == 1).all(0)
-        if bool(all_one.any()) and comp.row_min >= 1 - delta:
-            col = int(torch.nonzero(all_one)[0])
-            raise SingularSystemError(
-                "the interreflection system (I - F R) E = E0 is singular: reflectance is 1 on every facet of a "
-                f"closed group of {comp.size} facets (row sums of F >= {comp.row_min:.6g}) in column {col} "
-                "(batch x wavelength); light never leaves it. Use reflectance < 1 or an open scene."
-            )
+        check_closed_r1(rc, comp, closed_tol)
         fc = component_block(matrix, comp)
         sub_areas = areas if idx is None else areas.index_select(0, idx)
         reduce = not plan.is_sparse and not bool(refl.all())
@@ -103,7 +99,8 @@ def solve_columns(
             if factors is not None:
                 given = factors[fpos : fpos + 3]
                 fpos += 3
-            xs, kept = dense_solve(fc, rc_s, bc_s, transpose, given, keep_factors, stats)
+            xs, kept = dense_solve(fc, ar, rc_s, bc_s, transpose, given, keep_factors, stats,
+                                   reciprocal=plan.reciprocal, exact=exact)
             if keep_factors:
                 out_factors.extend(kept if kept else [empty, empty, empty])
         elif method == "cg":
@@ -123,6 +120,22 @@ def solve_columns(
         else:
             x[idx] = xc
     return x, out_factors
+
+
+def check_closed_r1(r: Tensor, comp: Component, closed_tol: float) -> None:
+    """Raise when a column has reflectance 1 on every facet of a component that is closed within the kernel's
+    accuracy: its area-weighted mean leakage ``Σ A_i (1 − Σ_j F_ij) / Σ A_i`` bounds the smallest eigenvalue of
+    ``I − G`` from above, so a leakage within ``closed_tol`` means a singular system up to the kernel's error."""
+    all_one = (r == 1).all(0)
+    if bool(all_one.any()) and comp.leak <= closed_tol:
+        col = int(torch.nonzero(all_one)[0])
+        raise SingularSystemError(
+            "the interreflection system (I - F R) E = E0 is singular: reflectance is 1 on every facet of a "
+            f"closed group of {comp.size} facets in column {col} (batch x wavelength): the group leaks "
+            f"{comp.leak:.3g} of its light (area-weighted 1 - row sum of F, smallest row sum {comp.row_min:.9g}), "
+            f"within the form factors' closure accuracy {closed_tol:.3g}, so light never leaves it as far as the "
+            "kernel can tell. Use reflectance < 1 or an open scene."
+        )
 
 
 def component_block(matrix: Tensor, comp: Component) -> Tensor:
