@@ -14,7 +14,7 @@ import torch
 
 from tests.oracles import random_reciprocal
 from torch_interreflect import FormFactors
-from torch_interreflect.solver import solve
+from torch_interreflect.solver import solve, solve_with_info
 
 F64 = torch.float64
 
@@ -44,7 +44,7 @@ def test_dense_with_two_threads_matches_cg(two_threads: None, n: int) -> None:
     g = torch.Generator().manual_seed(1)
     r = 0.5 + 0.45 * torch.rand(4, n, generator=g, dtype=F64)  # [B, F] grey, B = 4
     e0 = torch.rand(n, 3, generator=g, dtype=F64)
-    e_dense, info = solve(ff, r, e0, method="dense", return_info=True)
+    e_dense, info = solve_with_info(ff, r, e0, method="dense")
     e_cg = solve(ff, r, e0, method="cg", tol=1e-13)
     assert info.distinct_columns == 4
     torch.testing.assert_close(e_dense, e_cg, rtol=1e-10, atol=0)

@@ -15,7 +15,7 @@ from torch import Tensor
 from ..errors import ValueRangeError
 
 __all__ = ["QUADRATURE_DEFAULT_TOL", "RECIPROCITY_RTOL", "Component", "SolvePlan", "Stats", "get_plan",
-           "kernel_tolerance"]
+           "kernel_tolerance", "operator_component"]
 
 RECIPROCITY_RTOL = 1e-4
 
@@ -271,6 +271,20 @@ def _components(
     return comps
 
 
+def operator_component(op: Any) -> tuple[Component, float]:
+    """The whole operator as one :class:`Component` (leakage and closure error from its row sums), and the closure
+    accuracy its producer states (:func:`kernel_tolerance`)."""
+    rs = op.row_sums().detach()
+    n = int(rs.numel())
+    kernel_tol = kernel_tolerance(op.info, op.dtype)
+    rs_np, a_np = rs.cpu().double().numpy(), op.areas.detach().cpu().double().numpy()
+    leak, closure = _closure(rs_np, a_np, kernel_tol) if n else (1.0, 0.0)
+    rounding = math.sqrt(max(n, 1)) * torch.finfo(op.dtype).eps
+    comp = Component(index=None, size=n, row_min=float(rs_np.min()) if n else 1.0, leak=leak,
+                     closure_error=max(closure, rounding))
+    return comp, kernel_tol
+
+
 def _make_plan(matrix: Tensor, areas: Tensor, key: tuple[Any, ...], info: dict[str, Any]) -> SolvePlan:
     n = int(matrix.shape[0])
     sparse = matrix.layout != torch.strided
@@ -279,7 +293,7 @@ def _make_plan(matrix: Tensor, areas: Tensor, key: tuple[Any, ...], info: dict[s
     labels = _component_labels(st, n)
     kernel_tol = kernel_tolerance(info, matrix.dtype)
     comps = _components(matrix, areas, st, labels, sparse, kernel_tol)
-    rounding = 4 * math.sqrt(max(n, 1)) * torch.finfo(matrix.dtype).eps
+    rounding = math.sqrt(max(n, 1)) * torch.finfo(matrix.dtype).eps
     return SolvePlan(
         key=key,
         num_facets=n,
