@@ -37,6 +37,7 @@ from .info import (
     SolveInfo,
     make_info,
     relative_bound_estimate,
+    solver_error,
     warn_if_inaccurate,
     warn_if_not_converged,
 )
@@ -79,9 +80,8 @@ def _warn_accuracy(
     if info is not None:
         bound = info.relative_error_bound
     else:
-        eps = torch.finfo(r_cols.dtype).eps
-        residual = plan.num_facets * eps if method == "dense" else stats.residual
-        bound = relative_bound_estimate(residual, plan.closure_error, rmax, plan.max_row_sum)
+        bound = relative_bound_estimate(solver_error(method, stats, r_cols, tol, plan.max_row_sum, plan.num_facets),
+                                        plan.closure_error, rmax, plan.max_row_sum)
     warn_if_inaccurate(bound, tol, out_dtype, plan.closure_error, rmax, plan.max_row_sum,
                        f"solve(method={method!r})", stacklevel=5)
 

@@ -12,9 +12,11 @@ import torch
 from torch import Tensor
 
 from ..errors import AccuracyWarning, ConvergenceWarning
+from .krylov import error_tolerance
 from .plan import SolvePlan, Stats
 
-__all__ = ["Solution", "SolveInfo", "error_report", "make_info", "relative_bound_estimate", "warn_if_inaccurate",
+__all__ = ["Solution", "SolveInfo", "error_report", "make_info", "relative_bound_estimate", "solver_error",
+           "warn_if_inaccurate",
            "warn_if_not_converged"]
 
 
@@ -67,6 +69,20 @@ def relative_bound_estimate(residual: float, closure_error: float, rmax: float, 
     """A-priori relative error bound ``(residual + ε_F r_max) / (1 − r_max ρ)`` (``inf`` when ``r_max ρ ≥ 1``)."""
     gap = 1 - rmax * rho
     return math.inf if gap <= 0 else (residual + closure_error * rmax) / gap
+
+
+def solver_error(method: str, stats: Stats, r: Tensor, tol: float, rho: float, n: int) -> float:
+    """A-priori relative residual of the solve, scaled so that :func:`relative_bound_estimate` divides it by
+    ``1 − r_max ρ``: ``n·eps`` for ``dense``; for a converged iterative solve the per-column targets of
+    :func:`~.krylov.error_tolerance` (at most ``tol/2`` after division); otherwise the residual reached."""
+    eps = torch.finfo(r.dtype).eps
+    if method == "dense":
+        return n * eps
+    if not stats.converged or r.numel() == 0:
+        return stats.residual
+    gap = (1 - r.amax(0) * rho).clamp_min(1e-12)
+    gap_all = float(gap.min())
+    return float((error_tolerance(tol, r, rho) / gap).max()) * gap_all
 
 
 def warn_if_inaccurate(

@@ -17,15 +17,16 @@ __all__ = ["cg", "cg_block", "column_tolerance", "error_tolerance", "neumann_blo
 
 
 def error_tolerance(tol: float, r: Tensor, rho: float) -> Tensor:
-    """Per-column relative residual that makes the error bound ``residual / (1 − r_max ρ)`` at most ``tol``.
+    """Per-column relative residual that makes the solver's error bound ``residual / (1 − r_max ρ)`` at most
+    ``tol / 2`` (the other half of the budget is left to rounding and to the form factors' own error).
 
-    ``tol · (1 − r_max ρ)`` per column (``r_max`` its largest reflectance, ``ρ`` the largest row sum of ``F``),
+    ``tol · (1 − r_max ρ) / 2`` per column (``r_max`` its largest reflectance, ``ρ`` the largest row sum of ``F``),
     but never tighter than the ``16 eps / (1 − r_max ρ)`` that rounding allows, and never looser than ``tol``.
     """
     eps = torch.finfo(r.dtype).eps
     gap = (1 - (r.amax(0) if r.shape[0] else torch.zeros(r.shape[1], dtype=r.dtype, device=r.device)) * rho)
     gap = gap.clamp_min(1e-12)
-    return torch.minimum(torch.maximum(tol * gap, 16 * eps / gap), torch.full_like(gap, tol))
+    return torch.minimum(torch.maximum(0.5 * tol * gap, 16 * eps / gap), torch.full_like(gap, tol))
 
 
 def symmetric_operator(f: Tensor, sqrt_areas: Tensor) -> Tensor:

@@ -20,7 +20,14 @@ from torch.autograd.function import once_differentiable
 from ..formfactors.operator import FormFactorOperator
 from .columns import check_closed_r1, finish_output, prepare_inputs, to_columns
 from .functions import check_upstream_gradient
-from .info import SolveInfo, error_report, relative_bound_estimate, warn_if_inaccurate, warn_if_not_converged
+from .info import (
+    SolveInfo,
+    error_report,
+    relative_bound_estimate,
+    solver_error,
+    warn_if_inaccurate,
+    warn_if_not_converged,
+)
 from .krylov import error_tolerance, operator_cg, operator_neumann
 from .method import DEFAULT_MAX_ITER
 from .plan import Component, Stats, operator_component
@@ -128,7 +135,7 @@ def solve_operator(
     if bounces is None:
         rmax = float(r_cols.max()) if r_cols.numel() else 0.0
         relb = info.relative_error_bound if info is not None else relative_bound_estimate(
-            stats.residual, comp.closure_error, rmax, rho)
+            solver_error(method, stats, r_cols.detach(), tol, rho, n), comp.closure_error, rmax, rho)
         warn_if_inaccurate(relb, tol, out_dtype, comp.closure_error, rmax, rho, f"solve(method={method!r})",
                            stacklevel=4)
     return finish_output(x, shape, out_dtype, drop), info
