@@ -9,9 +9,10 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from .errors import ValueRangeError
+from .errors import DeviceError, ValueRangeError
 
-__all__ = ["as_float_tensor", "as_real_tensor", "check_finite", "check_reflectance", "describe_index"]
+__all__ = ["as_float_tensor", "as_real_tensor", "check_finite", "check_nonnegative", "check_reflectance",
+           "check_same_device", "describe_index"]
 
 
 
@@ -70,3 +71,27 @@ def check_reflectance(r: Tensor) -> None:
         raise ValueRangeError(
             f"reflectance must lie in [0, 1]; got min {float(flat[lo]):.6g} at {describe_index(r, lo, -2)}"
         )
+
+
+def check_nonnegative(t: Tensor, name: str, facet_dim: int, what: str = "irradiance") -> None:
+    """Finite and ``>= 0`` everywhere (light: irradiance, spectra); the message names the first offending facet."""
+    check_finite(t, name, facet_dim)
+    if t.numel() == 0:
+        return
+    flat = t.detach().reshape(-1)
+    lo = int(flat.argmin())
+    if float(flat[lo]) < 0:
+        raise ValueRangeError(
+            f"{name} must be >= 0 ({what} cannot be negative); got {float(flat[lo]):.6g} at "
+            f"{describe_index(t, lo, facet_dim)} ({int((flat < 0).sum())} negative values)"
+        )
+
+
+def check_same_device(device: torch.device, owner: str, **tensors: Tensor) -> None:
+    """Every tensor on ``device`` (the device of ``owner``); nothing is moved between devices silently."""
+    for name, t in tensors.items():
+        if t.device != device:
+            raise DeviceError(
+                f"{name} is on {t.device}; expected {device}, the device of {owner} (nothing is moved between "
+                f"devices silently): move one of them, e.g. {name}.to({str(device)!r})"
+            )

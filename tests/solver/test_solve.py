@@ -11,7 +11,7 @@ import torch
 from tests.oracles import random_reciprocal
 from torch_interreflect import FormFactors
 from torch_interreflect.errors import ConvergenceWarning, ShapeError, SingularSystemError, ValueRangeError
-from torch_interreflect.solver import SolveInfo, radiance, solve
+from torch_interreflect.solver import SolveInfo, radiance, solve, solve_with_info
 
 F64 = torch.float64
 METHODS = ["dense", "cg", "neumann"]
@@ -90,7 +90,7 @@ def test_float32_r0999_spread_spectrum(method: str) -> None:
     ff64 = closed_ring(n)
     ff32 = ff64.to(torch.float32)
     # uniform light: exact E0 / (1 - r)
-    e, info = solve(ff32, torch.full((n,), 0.999), torch.ones(n, 3), method=method, return_info=True)
+    e, info = solve_with_info(ff32, torch.full((n,), 0.999), torch.ones(n, 3), method=method)
     torch.testing.assert_close(e, torch.full_like(e, 1000.0), rtol=1e-3, atol=0)
     # non-uniform light: a few hundred CG iterations at most; compared with a float64 reference
     g = torch.Generator().manual_seed(1)
@@ -98,7 +98,7 @@ def test_float32_r0999_spread_spectrum(method: str) -> None:
     r = 0.999 - 0.01 * torch.rand(n, 4, generator=g, dtype=F64)
     r[:, 0] = 0.999
     ref = reference(ff64, r, e0)
-    e, info = solve(ff32, r.float(), e0.float(), method=method, return_info=True)
+    e, info = solve_with_info(ff32, r.float(), e0.float(), method=method)
     assert (e.double() - ref).norm() / ref.norm() <= 1e-3
     if method == "cg":
         assert 10 < info.iterations < 1000
@@ -135,7 +135,7 @@ def test_zero_reflectance(method: str) -> None:
     r = torch.rand(2, 15, 4, generator=g, dtype=F64)
     r[:, :5] = 0  # five facets never reflect
     r[1, :, 2] = 0  # one column reflects nowhere
-    e, info = solve(ff, r, e0, method=method, tol=1e-13, return_info=True)
+    e, info = solve_with_info(ff, r, e0, method=method, tol=1e-13)
     torch.testing.assert_close(e, reference(ff, r, e0), rtol=1e-10, atol=1e-13)
     if method == "dense":
         assert info.facets_skipped == 5
@@ -150,8 +150,8 @@ def test_zero_light_and_one_facet(method: str) -> None:
     e = solve(ff, torch.full((6, 3), 0.5, dtype=F64), torch.zeros(6, 3, dtype=F64), method=method)
     assert torch.equal(e, torch.zeros(6, 3, dtype=F64))
     one = FormFactors(torch.zeros(1, 1, dtype=F64), torch.ones(1, dtype=F64))
-    e, info = solve(
-        one, torch.tensor([0.7], dtype=F64), torch.tensor([[2.0, 3.0]], dtype=F64), method=method, return_info=True
+    e, info = solve_with_info(
+        one, torch.tensor([0.7], dtype=F64), torch.tensor([[2.0, 3.0]], dtype=F64), method=method
     )
     assert torch.equal(e, torch.tensor([[2.0, 3.0]], dtype=F64))
     assert info.facets_skipped == 1 and info.num_components == 0
@@ -161,7 +161,7 @@ def test_no_exchange_gives_e0() -> None:
     ff = FormFactors(torch.zeros(7, 7, dtype=F64), torch.ones(7, dtype=F64))
     e0 = torch.rand(3, 7, 5, dtype=F64)
     for method in [*METHODS, "auto"]:
-        e, info = solve(ff, torch.full((7, 5), 0.9, dtype=F64), e0, method=method, return_info=True)
+        e, info = solve_with_info(ff, torch.full((7, 5), 0.9, dtype=F64), e0, method=method)
         assert torch.equal(e, e0)
         assert info.facets_skipped == 7
 
@@ -172,7 +172,7 @@ def test_thousands_of_facets(method: str) -> None:
     ff = sphere(n)
     e0 = torch.rand(n, 8, dtype=F64)
     r = torch.full((n, 8), 0.8, dtype=F64)
-    e, info = solve(ff, r, e0, method=method, return_info=True)
+    e, info = solve_with_info(ff, r, e0, method=method)
     # sphere interior: E = E0 + r/(1 - r) * (A·E0)/A_total for uniform r
     mean = (ff.areas[:, None] * e0).sum(0) / ff.areas.sum()
     torch.testing.assert_close(e, e0 + 0.8 / 0.2 * mean, rtol=1e-5, atol=0)
@@ -189,7 +189,7 @@ def test_components_and_isolated_facets() -> None:
     e0 = torch.rand(2, 21, 3, dtype=F64)
     ref = reference(ff, r, e0)
     for method in METHODS:
-        e, info = solve(ff, r, e0, method=method, tol=1e-13, return_info=True)
+        e, info = solve_with_info(ff, r, e0, method=method, tol=1e-13)
         torch.testing.assert_close(e, ref, rtol=1e-10, atol=1e-13)
         assert info.num_components == 2
         assert info.facets_skipped == 3
@@ -223,7 +223,7 @@ def test_bounces() -> None:
     errs = [float((solve(ff, r, e0, bounces=n) - inf).abs().max()) for n in (1, 2, 4, 8, 16, 64)]
     assert all(b < a for a, b in itertools.pairwise(errs))
     assert errs[-1] < 1e-9
-    _, info = solve(ff, r, e0, bounces=64, return_info=True)
+    _, info = solve_with_info(ff, r, e0, bounces=64)
     assert info.method == "series" and info.iterations == 63
 
 
@@ -235,7 +235,7 @@ def test_dense_cg_neumann_agree_and_float32() -> None:
     e0 = torch.rand(3, 64, 31, generator=g, dtype=F64)
     ed = solve(ff, r, e0, method="dense")
     for method in ("cg", "neumann"):
-        e, info = solve(ff, r, e0, method=method, tol=1e-8, return_info=True)
+        e, info = solve_with_info(ff, r, e0, method=method, tol=1e-8)
         assert info.converged and info.residual < 1e-7
         assert float(((e - ed).norm(dim=-2) / ed.norm(dim=-2)).max()) <= info.relative_error_bound + 1e-12
         torch.testing.assert_close(e, ed, rtol=1e-6, atol=0)
@@ -250,7 +250,7 @@ def test_broadcast_shapes_and_grey() -> None:
     ff = random_reciprocal(5)
     r_grey = torch.rand(5, dtype=F64)
     e0 = torch.rand(4, 5, 7, dtype=F64)
-    e, info = solve(ff, r_grey, e0, method="dense", return_info=True)
+    e, info = solve_with_info(ff, r_grey, e0, method="dense")
     assert e.shape == (4, 5, 7)
     assert info.distinct_columns == 1 and info.num_columns == 28
     torch.testing.assert_close(e, reference(ff, r_grey[:, None], e0))
@@ -258,8 +258,8 @@ def test_broadcast_shapes_and_grey() -> None:
     rb = torch.rand(3, 5, dtype=F64)
     e = solve(ff, rb, torch.ones(5, 1, dtype=F64))
     assert e.shape == (3, 5, 1)
-    # E0 as a plain [F] vector
-    assert solve(ff, r_grey, torch.ones(5, dtype=F64)).shape == (5, 1)
+    # E0 as a plain [F] vector: shape in = shape out
+    assert solve(ff, r_grey, torch.ones(5, dtype=F64)).shape == (5,)
     # mixed dtypes promote
     assert solve(ff, r_grey.float(), e0.float()).dtype == F64
 
@@ -310,7 +310,7 @@ def test_cg_requires_reciprocity() -> None:
     r, e0 = torch.full((6, 2), 0.9, dtype=F64), torch.rand(6, 2, dtype=F64)
     with pytest.raises(ValueError, match="reciprocal"):
         solve(ff, r, e0, method="cg")
-    e, info = solve(ff, r, e0, return_info=True)
+    e, info = solve_with_info(ff, r, e0)
     assert info.method == "dense"
     torch.testing.assert_close(e, reference(ff, r, e0))
     torch.testing.assert_close(solve(ff, r, e0, method="neumann", tol=1e-13), e)
@@ -322,7 +322,7 @@ def test_convergence_warning(method: str) -> None:
     r = torch.full((50, 2), 0.99, dtype=F64)
     e0 = torch.rand(50, 2, dtype=F64)
     with pytest.warns(ConvergenceWarning, match="residual") as rec:
-        e, info = solve(ff, r, e0, method=method, max_iter=3, return_info=True)
+        e, info = solve_with_info(ff, r, e0, method=method, max_iter=3)
     assert rec[0].message.residual > 1e-6  # type: ignore[union-attr]
     assert not info.converged and info.iterations == 3
     assert torch.isfinite(e).all()
@@ -333,7 +333,7 @@ def test_convergence_warning(method: str) -> None:
 
 def test_info_and_radiance() -> None:
     ff = sphere(10)
-    e, info = solve(ff, torch.full((10,), 0.5, dtype=F64), torch.ones(10, 3, dtype=F64), return_info=True)
+    e, info = solve_with_info(ff, torch.full((10,), 0.5, dtype=F64), torch.ones(10, 3, dtype=F64))
     assert isinstance(info, SolveInfo)
     assert info.num_components == 1 and info.facets_skipped == 0 and info.num_columns == 3
     assert info.residual < 1e-10 and info.error_bound < 1e-8

@@ -11,16 +11,19 @@ drops facets that do not reflect, and calls one of the cores (:mod:`.dense`, :mo
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import torch
 from torch import Tensor
 
+from .._checks import as_real_tensor, check_nonnegative, check_reflectance, check_same_device
 from ..errors import ShapeError, SingularSystemError
 from .dense import dense_solve
-from .krylov import cg_block, neumann_block
+from .krylov import cg_block, error_tolerance, neumann_block
 from .plan import Component, SolvePlan, Stats
 
-__all__ = ["broadcast_facet_shapes", "component_block", "from_columns", "solve_columns", "to_columns"]
+__all__ = ["broadcast_facet_shapes", "check_closed_r1", "component_block", "finish_output", "from_columns",
+           "prepare_inputs", "promote_dtypes", "solve_columns", "to_columns"]
 
 
 # ----------------------------------------------------------------------------------------------- the plan
@@ -53,8 +56,11 @@ def solve_columns(
         areas: ``[F]`` facet areas (same dtype as ``b``).
         r: ``[F, N]`` reflectance columns; ``b``: ``[F, N]`` right-hand sides.
         method: ``"dense"``, ``"cg"`` or ``"neumann"``.
-        factors: dense LU factors returned by an earlier call with the same ``r`` (reused for the adjoint).
-        keep_factors: return the dense LU factors (3 tensors per block; empty tensors where not kept).
+        tol: Requested relative error: iterative methods stop each column at the relative residual
+            :func:`~.krylov.error_tolerance` (``tol · (1 − r_max ρ)``), so that the error bound is ``tol``.
+        factors: dense factors returned by an earlier call with the same ``r`` (reused for the adjoint).
+        keep_factors: return the dense factors (3 tensors per block: Cholesky or LU factors, pivots (empty for
+            Cholesky), distinct-column index; empty tensors where not kept).
 
     Returns:
         ``x`` ``[F, N]`` and the list of kept factors.
@@ -63,7 +69,8 @@ def solve_columns(
     x = b.clone()
     out_factors: list[Tensor] = []
     fpos = 0
-    delta = math.sqrt(torch.finfo(b.dtype).eps)
+    closed_tol = max(plan.kernel_tol, math.sqrt(torch.finfo(b.dtype).eps))
+    exact = plan.reciprocity_error <= 16 * torch.finfo(b.dtype).eps
     stats.skipped = plan.isolated
     empty = b.new_empty(0)
     for comp in plan.components:
@@ -74,14 +81,7 @@ def solve_columns(
         if not bool(refl.any()):
             stats.skipped += comp.size
             continue
-        all_one = (rc == 1).all(0)
-        if bool(all_one.any()) and comp.row_min >= 1 - delta:
-            col = int(torch.nonzero(all_one)[0])
-            raise SingularSystemError(
-                "the interreflection system (I - F R) E = E0 is singular: reflectance is 1 on every facet of a "
-                f"closed group of {comp.size} facets (row sums of F >= {comp.row_min:.6g}) in column {col} "
-                "(batch x wavelength); light never leaves it. Use reflectance < 1 or an open scene."
-            )
+        check_closed_r1(rc, comp, closed_tol)
         fc = component_block(matrix, comp)
         sub_areas = areas if idx is None else areas.index_select(0, idx)
         reduce = not plan.is_sparse and not bool(refl.all())
@@ -103,13 +103,16 @@ def solve_columns(
             if factors is not None:
                 given = factors[fpos : fpos + 3]
                 fpos += 3
-            xs, kept = dense_solve(fc, rc_s, bc_s, transpose, given, keep_factors, stats)
+            xs, kept = dense_solve(fc, ar, rc_s, bc_s, transpose, given, keep_factors, stats,
+                                   reciprocal=plan.reciprocal, exact=exact)
             if keep_factors:
                 out_factors.extend(kept if kept else [empty, empty, empty])
         elif method == "cg":
-            xs = cg_block(fc, ar, rc_s, bc_s, transpose, tol, max_iter, stats)
+            xs = cg_block(fc, ar, rc_s, bc_s, transpose, error_tolerance(tol, rc_s, plan.max_row_sum), max_iter,
+                          stats)
         elif method == "neumann":
-            xs = neumann_block(fc, ar, rc_s, bc_s, transpose, tol, max_iter, stats)
+            xs = neumann_block(fc, ar, rc_s, bc_s, transpose, error_tolerance(tol, rc_s, plan.max_row_sum),
+                               max_iter, stats)
         else:  # pragma: no cover - validated by the caller
             raise ValueError(f"unknown method {method!r}")
         if reduce:
@@ -123,6 +126,22 @@ def solve_columns(
         else:
             x[idx] = xc
     return x, out_factors
+
+
+def check_closed_r1(r: Tensor, comp: Component, closed_tol: float) -> None:
+    """Raise when a column has reflectance 1 on every facet of a component that is closed within the kernel's
+    accuracy: its area-weighted mean leakage ``Σ A_i (1 − Σ_j F_ij) / Σ A_i`` bounds the smallest eigenvalue of
+    ``I − G`` from above, so a leakage within ``closed_tol`` means a singular system up to the kernel's error."""
+    all_one = (r == 1).all(0)
+    if bool(all_one.any()) and comp.leak <= closed_tol:
+        col = int(torch.nonzero(all_one)[0])
+        raise SingularSystemError(
+            "the interreflection system (I - F R) E = E0 is singular: reflectance is 1 on every facet of a "
+            f"closed group of {comp.size} facets in column {col} (batch x wavelength): the group leaks "
+            f"{comp.leak:.3g} of its light (area-weighted 1 - row sum of F, smallest row sum {comp.row_min:.9g}), "
+            f"within the form factors' closure accuracy {closed_tol:.3g}, so light never leaves it as far as the "
+            "kernel can tell. Use reflectance < 1 or an open scene."
+        )
 
 
 def component_block(matrix: Tensor, comp: Component) -> Tensor:
@@ -168,6 +187,45 @@ def broadcast_facet_shapes(n: int, reflectance: Tensor, e0: Tensor) -> tuple[Ten
             f"{list(e.shape[:-2])}"
         ) from exc
     return r, e, shape
+
+
+def promote_dtypes(base: torch.dtype, *tensors: Tensor) -> tuple[torch.dtype, torch.dtype]:
+    """``(compute dtype, output dtype)``: the promotion of ``base`` (the form factors') with the floating inputs;
+    half precision (float16, bfloat16) is computed in float32 and returned in its own dtype."""
+    if not base.is_floating_point:
+        raise TypeError(f"form factors must be floating point; got {base}")
+    dtype = base
+    for t in tensors:
+        if t.dtype.is_floating_point:
+            dtype = torch.promote_types(dtype, t.dtype)
+    compute = torch.float32 if dtype in (torch.float16, torch.bfloat16) else dtype
+    return compute, dtype
+
+
+def prepare_inputs(
+    n: int, device: torch.device, reflectance: Any, E0: Any, base: torch.dtype
+) -> tuple[Tensor, Tensor, torch.Size, torch.dtype, bool]:
+    """Validate and broadcast the inputs of a solve: ``(r, e0, shape, output dtype, drop_wavelength)``.
+
+    ``r``, ``e0`` are ``[..., F, L]`` in the compute dtype (:func:`promote_dtypes`); ``drop_wavelength`` is True when
+    both inputs are ``[F]`` vectors (the output is then ``[F]``: shape in = shape out).
+    """
+    reflectance = as_real_tensor(reflectance, "reflectance")
+    E0 = as_real_tensor(E0, "E0")
+    check_same_device(device, "the form factors", reflectance=reflectance, E0=E0)
+    compute, out_dtype = promote_dtypes(base, reflectance, E0)
+    r, e0, shape = broadcast_facet_shapes(n, reflectance.to(compute), E0.to(compute))
+    check_reflectance(r)
+    check_nonnegative(e0, "E0", -2)
+    return r, e0, shape, out_dtype, reflectance.ndim == 1 and E0.ndim == 1
+
+
+def finish_output(x: Tensor, shape: torch.Size, out_dtype: torch.dtype, drop_wavelength: bool) -> Tensor:
+    """Columns ``[F, N]`` → the output shape and dtype."""
+    E = from_columns(x, shape)
+    if drop_wavelength:
+        E = E.squeeze(-1)
+    return E if E.dtype == out_dtype else E.to(out_dtype)
 
 
 def to_columns(t: Tensor, shape: torch.Size) -> Tensor:

@@ -8,12 +8,13 @@ from typing import Any
 import torch
 from torch import Tensor
 
+from ..errors import ValueRangeError
 from .columns import solve_columns
 from .info import warn_if_not_converged
 from .plan import SolvePlan, Stats
 
-__all__ = ["CsrMatmul", "InterreflectSolve", "SolveConfig", "apply_solve", "matmul", "outer_on_pattern",
-           "transposed_matmul"]
+__all__ = ["CsrMatmul", "InterreflectSolve", "SolveConfig", "apply_solve", "check_upstream_gradient", "matmul",
+           "outer_on_pattern", "transposed_matmul"]
 
 
 
@@ -78,6 +79,7 @@ class InterreflectSolve(torch.autograd.Function):
         need_f, need_r, need_b = ctx.needs_input_grad[:3]
         if not (need_f or need_r or need_b):
             return None, None, None, None
+        check_upstream_gradient(gx)
         acfg = cfg.adjoint()
         if torch.is_grad_enabled():  # create_graph=True: the adjoint solve itself must be differentiable
             gam = apply_solve(matrix, r, gx, acfg)
@@ -108,6 +110,23 @@ class InterreflectSolve(torch.autograd.Function):
             if need_f:
                 grad_f = outer_on_pattern(matrix, x, r * gam)
         return grad_f, grad_r, (gam if need_b else None), None
+
+
+def check_upstream_gradient(g: Tensor) -> None:
+    """Raise :class:`ValueRangeError` when the gradient reaching the solve's backward is not finite.
+
+    ``g`` is ``[F, N]`` (facets × flattened batch and wavelength columns).
+    """
+    bad = ~torch.isfinite(g)
+    if bool(bad.any()):
+        k = int(torch.nonzero(bad.reshape(-1))[0])
+        i, j = divmod(k, g.shape[1])
+        raise ValueRangeError(
+            f"the upstream gradient dloss/dE reaching solve's backward is not finite: {int(bad.sum())} NaN/inf "
+            f"values (first {float(g.reshape(-1)[k])} at facet {i}, column {j} of batch x wavelength). The "
+            "loss or an operation between solve and the loss produced it; the solve itself is fine. Check the loss "
+            "(torch.autograd.set_detect_anomaly(True) finds the operation)."
+        )
 
 
 def apply_solve(matrix: Tensor, r: Tensor, b: Tensor, cfg: SolveConfig) -> Tensor:

@@ -11,8 +11,22 @@ from torch import Tensor
 from ..errors import SingularSystemError
 from .plan import Stats
 
-__all__ = ["cg", "cg_block", "neumann_block", "operator_cg", "operator_neumann", "symmetric_operator"]
+__all__ = ["cg", "cg_block", "column_tolerance", "error_tolerance", "neumann_block", "operator_cg", "operator_neumann",
+           "symmetric_operator"]
 
+
+
+def error_tolerance(tol: float, r: Tensor, rho: float) -> Tensor:
+    """Per-column relative residual that makes the solver's error bound ``residual / (1 − r_max ρ)`` at most
+    ``tol / 2`` (the other half of the budget is left to rounding and to the form factors' own error).
+
+    ``tol · (1 − r_max ρ) / 2`` per column (``r_max`` its largest reflectance, ``ρ`` the largest row sum of ``F``),
+    but never tighter than the ``16 eps / (1 − r_max ρ)`` that rounding allows, and never looser than ``tol``.
+    """
+    eps = torch.finfo(r.dtype).eps
+    gap = (1 - (r.amax(0) if r.shape[0] else torch.zeros(r.shape[1], dtype=r.dtype, device=r.device)) * rho)
+    gap = gap.clamp_min(1e-12)
+    return torch.minimum(torch.maximum(0.5 * tol * gap, 16 * eps / gap), torch.full_like(gap, tol))
 
 
 def symmetric_operator(f: Tensor, sqrt_areas: Tensor) -> Tensor:
@@ -27,7 +41,8 @@ def symmetric_operator(f: Tensor, sqrt_areas: Tensor) -> Tensor:
 
 
 def cg_block(
-    f: Tensor, areas: Tensor, r: Tensor, b: Tensor, transpose: bool, tol: float, max_iter: int, stats: Stats
+    f: Tensor, areas: Tensor, r: Tensor, b: Tensor, transpose: bool, tol: float | Tensor, max_iter: int,
+    stats: Stats,
 ) -> Tensor:
     sa = areas.sqrt()
     g = symmetric_operator(f, sa)
@@ -43,7 +58,7 @@ def cg_block(
 
 
 def operator_cg(
-    apply_f: Callable[[Tensor], Tensor], areas: Tensor, r: Tensor, b: Tensor, transpose: bool, tol: float,
+    apply_f: Callable[[Tensor], Tensor], areas: Tensor, r: Tensor, b: Tensor, transpose: bool, tol: float | Tensor,
     max_iter: int, stats: Stats,
 ) -> Tensor:
     """:func:`cg_block` for an ``F`` given only as a product ``apply_f(x) = F @ x`` (``[F, N] -> [F, N]``).
@@ -67,7 +82,7 @@ def operator_cg(
 
 
 def operator_neumann(
-    apply_f: Callable[[Tensor], Tensor], areas: Tensor, r: Tensor, b: Tensor, transpose: bool, tol: float,
+    apply_f: Callable[[Tensor], Tensor], areas: Tensor, r: Tensor, b: Tensor, transpose: bool, tol: float | Tensor,
     max_iter: int, stats: Stats,
 ) -> Tensor:
     """:func:`neumann_block` for an ``F`` given only as a product (reciprocal: ``Fᵀ x = A F (x / A)``)."""
@@ -76,12 +91,17 @@ def operator_neumann(
     return neumann_block(op, areas, r, b, transpose, tol, max_iter, stats)
 
 
-def cg(g: Tensor | Callable[[Tensor], Tensor], s: Tensor, rhs: Tensor, tol: float, max_iter: int,
+def column_tolerance(tol: float | Tensor, n: int, like: Tensor) -> Tensor:
+    """``tol`` as one relative tolerance per column ``[n]``."""
+    return torch.as_tensor(tol, dtype=like.dtype, device=like.device).expand(n)
+
+
+def cg(g: Tensor | Callable[[Tensor], Tensor], s: Tensor, rhs: Tensor, tol: float | Tensor, max_iter: int,
         stats: Stats) -> Tensor:
     """Conjugate gradients on ``(I − S G S) w = rhs`` for all columns at once, one GEMM/SpMM per iteration.
 
-    ``g`` is a matrix or a product callable. Converged columns are written out and dropped from the working set
-    (so later products are narrower).
+    ``g`` is a matrix or a product callable; ``tol`` the relative residual to reach, one number or one per column.
+    Converged columns are written out and dropped from the working set (so later products are narrower).
     """
     gmul = g if callable(g) else g.__matmul__
     x = torch.zeros_like(rhs)
@@ -89,9 +109,11 @@ def cg(g: Tensor | Callable[[Tensor], Tensor], s: Tensor, rhs: Tensor, tol: floa
     active = torch.nonzero(bnorm2 > 0).squeeze(1)
     if active.numel() == 0:
         return x
-    thresh = (tol * tol) * bnorm2[active]
+    tols = column_tolerance(tol, rhs.shape[1], rhs)
+    thresh = tols[active].square() * bnorm2[active]
     bn2 = bnorm2[active]
     sa = s[:, active]
+    failed = False
     res = rhs[:, active].clone()
     p = res.clone()
     xa = torch.zeros_like(res)
@@ -101,6 +123,7 @@ def cg(g: Tensor | Callable[[Tensor], Tensor], s: Tensor, rhs: Tensor, tol: floa
     while True:
         done = rr <= thresh
         if it >= max_iter:
+            failed = failed or not bool(done.all())
             done = torch.ones_like(done)
         if bool(done.any()):
             x[:, active[done]] = xa[:, done]
@@ -127,14 +150,14 @@ def cg(g: Tensor | Callable[[Tensor], Tensor], s: Tensor, rhs: Tensor, tol: floa
         it += 1
     stats.iterations = max(stats.iterations, it)
     stats.residual = max(stats.residual, worst)
-    if worst > tol:
+    if failed:
         stats.converged = False
     return x
 
 
 def neumann_block(
-    f: Tensor | Callable[[Tensor], Tensor], areas: Tensor, r: Tensor, b: Tensor, transpose: bool, tol: float,
-    max_iter: int, stats: Stats,
+    f: Tensor | Callable[[Tensor], Tensor], areas: Tensor, r: Tensor, b: Tensor, transpose: bool,
+    tol: float | Tensor, max_iter: int, stats: Stats,
 ) -> Tensor:
     """``x ← b + F R x`` (or ``b + R Fᵀ x``) until ``‖x_{k+1} − x_k‖ ≤ tol ‖b‖`` per column (area-weighted).
 
@@ -153,8 +176,9 @@ def neumann_block(
     active = torch.nonzero(bnorm2 > 0).squeeze(1)
     if active.numel() == 0:
         return x
-    thresh = (tol * tol) * bnorm2[active]
+    thresh = column_tolerance(tol, b.shape[1], b)[active].square() * bnorm2[active]
     bn2 = bnorm2[active]
+    failed = False
     ra, ba, xa = r[:, active], b[:, active], x[:, active]
     it = 0
     worst = 0.0
@@ -175,6 +199,7 @@ def neumann_block(
             it += 1
             done = d2 <= thresh
         else:
+            failed = failed or not bool((d2 <= thresh).all())
             done = torch.ones(active.numel(), dtype=torch.bool, device=b.device)
         if bool(done.any()):
             x[:, active[done]] = xa[:, done]
@@ -186,6 +211,6 @@ def neumann_block(
             ra, ba, xa, d2 = ra[:, keep], ba[:, keep], xa[:, keep], d2[keep]
     stats.iterations = max(stats.iterations, it)
     stats.residual = max(stats.residual, worst)
-    if worst > tol:
+    if failed:
         stats.converged = False
     return x

@@ -60,10 +60,11 @@ DENSE_MAX_FACETS = 4096
 
 
 def estimate_cg_iterations(rho: float, tol: float, size: int) -> int:
+    """CG iterations to reach the relative error ``tol`` (residual ``tol·(1 − ρ)``) at ``ρ = r_max·max row sum``."""
     if rho >= 1:
         return size
     kappa = (1 + rho) / (1 - rho)
-    return max(1, min(size, math.ceil(0.5 * math.sqrt(kappa) * math.log(2 / tol))))
+    return max(1, min(size, math.ceil(0.5 * math.sqrt(kappa) * math.log(2 / (tol * (1 - rho))))))
 
 
 def choose_method(plan: SolvePlan, r_cols: Tensor, tol: float) -> str:

@@ -17,14 +17,20 @@ import torch
 from torch import Tensor
 from torch.autograd.function import once_differentiable
 
-from .._checks import as_real_tensor, check_finite, check_reflectance
-from ..errors import SingularSystemError
 from ..formfactors.operator import FormFactorOperator
-from .columns import broadcast_facet_shapes, from_columns, to_columns
-from .info import SolveInfo, warn_if_not_converged
-from .krylov import operator_cg, operator_neumann
+from .columns import check_closed_r1, finish_output, prepare_inputs, to_columns
+from .functions import check_upstream_gradient
+from .info import (
+    SolveInfo,
+    error_report,
+    relative_bound_estimate,
+    solver_error,
+    warn_if_inaccurate,
+    warn_if_not_converged,
+)
+from .krylov import error_tolerance, operator_cg, operator_neumann
 from .method import DEFAULT_MAX_ITER
-from .plan import Stats
+from .plan import Component, Stats, operator_component
 
 
 @dataclass
@@ -34,18 +40,16 @@ class _OpConfig:
     tol: float
     max_iter: int
     stats: Stats
+    comp: Component
+    kernel_tol: float
 
 
 def _run(cfg: _OpConfig, r: Tensor, b: Tensor, transpose: bool, stats: Stats) -> Tensor:
     areas = cfg.op.areas
-    rmax_one = (r == 1).all(0)
-    if bool(rmax_one.any()) and float(cfg.op.row_sums().min()) >= 1 - math.sqrt(torch.finfo(r.dtype).eps):
-        raise SingularSystemError(
-            "the interreflection system (I - F R) E = E0 is singular: reflectance is 1 on every facet of a closed "
-            f"scene (column {int(torch.nonzero(rmax_one)[0])}); light never leaves it. Use reflectance < 1."
-        )
+    check_closed_r1(r, cfg.comp, max(cfg.kernel_tol, math.sqrt(torch.finfo(r.dtype).eps)))
     core = operator_cg if cfg.method == "cg" else operator_neumann
-    return core(cfg.op.matmul, areas, r, b, transpose, cfg.tol, cfg.max_iter, stats)
+    tol = error_tolerance(cfg.tol, r, float(cfg.op.row_sums().max()))
+    return core(cfg.op.matmul, areas, r, b, transpose, tol, cfg.max_iter, stats)
 
 
 class _OperatorSolve(torch.autograd.Function):
@@ -69,6 +73,7 @@ class _OperatorSolve(torch.autograd.Function):
         need_r, need_b = ctx.needs_input_grad[:2]
         if not (need_r or need_b):
             return None, None, None
+        check_upstream_gradient(gx)
         stats = Stats()
         gam = _run(cfg, r, gx, True, stats)
         warn_if_not_converged(stats, "adjoint (backward) solve")
@@ -78,39 +83,33 @@ class _OperatorSolve(torch.autograd.Function):
 
 def solve_operator(
     op: FormFactorOperator,
-    reflectance: Tensor,
-    E0: Tensor,
+    reflectance: Any,
+    E0: Any,
     *,
     bounces: int | None,
     tol: float,
     method: str,
     max_iter: int | None,
-    return_info: bool,
-) -> Tensor | tuple[Tensor, SolveInfo]:
-    """The body of :func:`~torch_interreflect.solve` for a :class:`HierarchicalFormFactors` (validated args)."""
+    want_info: bool,
+) -> tuple[Tensor, SolveInfo | None]:
+    """The body of :func:`~torch_interreflect.solve` for an operator (validated options): ``(E, info or None)``.
+
+    Dtypes and devices are handled as on the matrix path: the inputs must be on the operator's device
+    (:class:`~torch_interreflect.errors.DeviceError` otherwise); the operator is cast to the promoted dtype
+    (half precision computed in float32, returned in the input's dtype).
+    """
     if method == "dense":
         raise ValueError(
-            "method='dense' needs the [F, F] matrix; an operator (HierarchicalFormFactors) supports method 'auto', "
-            "'cg' or "
-            "'neumann'"
+            "method='dense' needs the [F, F] matrix; an operator (e.g. HierarchicalFormFactors) supports method "
+            "'auto', 'cg' or 'neumann'"
         )
     method = "cg" if method == "auto" else method
-    reflectance = as_real_tensor(reflectance, "reflectance")
-    E0 = as_real_tensor(E0, "E0")
-    dtype = op.dtype
-    for name, t in (("reflectance", reflectance), ("E0", E0)):
-        if t.device != op.device:
-            raise ValueError(f"{name} is on {t.device} but the form factors are on {op.device}")
-        if t.dtype.is_floating_point:
-            dtype = torch.promote_types(dtype, t.dtype)
-    if dtype != op.dtype:
-        op = op.to(dtype)
     n = op.num_facets
-    r, e0, shape = broadcast_facet_shapes(n, reflectance.to(dtype), E0.to(dtype))
-    check_reflectance(r)
-    check_finite(e0, "E0", -2)
-    r_cols = to_columns(r, shape)
-    b_cols = to_columns(e0, shape)
+    r, e0, shape, out_dtype, drop = prepare_inputs(n, op.device, reflectance, E0, op.dtype)
+    if r.dtype != op.dtype:
+        op = op.to(r.dtype)  # type: ignore[attr-defined]
+    r_cols, b_cols = to_columns(r, shape), to_columns(e0, shape)
+    comp, kernel_tol = operator_component(op)
     stats = Stats()
     if bounces is not None:
         x = b_cols
@@ -118,36 +117,25 @@ def solve_operator(
             x = b_cols + op.matmul(r_cols * x)
         method_used, iters = "series", bounces - 1
     else:
-        cfg = _OpConfig(op=op, method=method, tol=float(tol),
-                        max_iter=int(max_iter if max_iter is not None else DEFAULT_MAX_ITER[method]), stats=stats)
+        cfg = _OpConfig(op=op, method=method, tol=float(tol), stats=stats, comp=comp, kernel_tol=kernel_tol,
+                        max_iter=int(max_iter if max_iter is not None else DEFAULT_MAX_ITER[method]))
         x = _OperatorSolve.apply(r_cols, b_cols, cfg)
         warn_if_not_converged(stats, f"solve(method={method!r})")
         method_used, iters = method, stats.iterations
-    E = from_columns(x, shape)
-    if not return_info:
-        return E
-    with torch.no_grad():
-        rd, bd, xd = r_cols.detach(), b_cols.detach(), x.detach()
-        res = bd - xd + op.matmul(rd * xd)
-        sa = op.areas.sqrt()[:, None]
-        rn, bn = (sa * res).norm(dim=0), (sa * bd).norm(dim=0)
-        rel = torch.where(bn > 0, rn / torch.where(bn > 0, bn, 1), rn)
-        rho = float(op.row_sums().max()) if n else 0.0
-        denom = 1 - (rd.amax(0) if n else torch.zeros_like(rn)) * rho
-        bound = torch.where(denom > 0, rn / denom.clamp_min(1e-300), torch.full_like(rn, math.inf))
-        bound = torch.where(rn == 0, torch.zeros_like(bound), bound)
-        relb = torch.where(bn > 0, bound / torch.where(bn > 0, bn, 1), bound)
-    empty = rn.numel() == 0
-    info = SolveInfo(
-        method=method_used,
-        iterations=int(iters),
-        residual=0.0 if empty else float(rel.max()),
-        error_bound=0.0 if empty else float(bound.max()),
-        relative_error_bound=0.0 if empty else float(relb.max()),
-        converged=bool(stats.converged),
-        num_components=1,
-        facets_skipped=0,
-        num_columns=int(bd.shape[1]),
-        extra={"operator": "hierarchical", "kernel_estimated_rel_error": op.info.get("estimated_rel_error")},
-    )
-    return E, info
+    rho = float(op.row_sums().max()) if n else 0.0
+    info = None
+    if want_info:
+        rel, bound, relb = error_report(op.matmul, op.areas, r_cols, b_cols, x, comp.closure_error, rho)
+        info = SolveInfo(method=method_used, iterations=int(iters), residual=rel, error_bound=bound,
+                         relative_error_bound=relb, converged=bool(stats.converged), num_components=1,
+                         facets_skipped=0, num_columns=int(b_cols.shape[1]),
+                         extra={"operator": type(op).__name__, "kernel_closure_error": comp.closure_error,
+                                "kernel_tol": kernel_tol,
+                                "kernel_estimated_rel_error": getattr(op, "info", {}).get("estimated_rel_error")})
+    if bounces is None:
+        rmax = float(r_cols.max()) if r_cols.numel() else 0.0
+        relb = info.relative_error_bound if info is not None else relative_bound_estimate(
+            solver_error(method, stats, r_cols.detach(), tol, rho, n), comp.closure_error, rmax, rho)
+        warn_if_inaccurate(relb, tol, out_dtype, comp.closure_error, rmax, rho, f"solve(method={method!r})",
+                           stacklevel=4)
+    return finish_output(x, shape, out_dtype, drop), info

@@ -1,0 +1,76 @@
+"""The dense method under several torch threads (issue 13, item 1).
+
+On torch 2.13 CPU, batched ``torch.linalg.lu_factor_ex`` with 2 threads returns invalid pivots for batches ≥ 2 of
+matrices with ≳ 200 rows. The test suite pins one thread per worker (tests/conftest.py), so these tests set 2
+threads themselves (and restore the count).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+
+import pytest
+import torch
+
+from tests.oracles import random_reciprocal
+from torch_interreflect import FormFactors
+from torch_interreflect.solver import solve, solve_with_info
+
+F64 = torch.float64
+
+
+@pytest.fixture
+def two_threads() -> Iterator[None]:
+    prev = torch.get_num_threads()
+    torch.set_num_threads(2)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(prev)
+
+
+def _nonreciprocal(n: int, seed: int = 0) -> FormFactors:
+    g = torch.Generator().manual_seed(seed)
+    f = torch.rand(n, n, generator=g, dtype=F64)
+    f.fill_diagonal_(0)
+    return FormFactors(f / f.sum(1, keepdim=True) * 0.9, torch.ones(n, dtype=F64))
+
+
+@pytest.mark.parametrize("n", [256, 300])
+def test_dense_with_two_threads_matches_cg(two_threads: None, n: int) -> None:
+    """Batch of 4 grey reflectances (4 distinct columns, 4 factorisations) on a reciprocal kernel."""
+    assert torch.get_num_threads() == 2
+    ff = random_reciprocal(n, scale=0.95, seed=n)
+    g = torch.Generator().manual_seed(1)
+    r = 0.5 + 0.45 * torch.rand(4, n, generator=g, dtype=F64)  # [B, F] grey, B = 4
+    e0 = torch.rand(n, 3, generator=g, dtype=F64)
+    e_dense, info = solve_with_info(ff, r, e0, method="dense")
+    e_cg = solve(ff, r, e0, method="cg", tol=1e-13)
+    assert info.distinct_columns == 4
+    torch.testing.assert_close(e_dense, e_cg, rtol=1e-10, atol=0)
+    # the adjoint reuses the factors: gradients against CG's
+    ra, rb = r.clone().requires_grad_(), r.clone().requires_grad_()
+    solve(ff, ra, e0, method="dense").square().sum().backward()
+    solve(ff, rb, e0, method="cg", tol=1e-13).square().sum().backward()
+    torch.testing.assert_close(ra.grad, rb.grad, rtol=1e-9, atol=0)
+
+
+def test_nonreciprocal_lu_with_two_threads(two_threads: None) -> None:
+    """Without reciprocity the dense method is LU (guarded); compared with the Neumann series."""
+    n = 256
+    ff = _nonreciprocal(n)
+    r = torch.linspace(0.3, 0.9, 6, dtype=F64).expand(n, 6)  # 6 distinct columns
+    e0 = torch.rand(2, n, 6, generator=torch.Generator().manual_seed(2), dtype=F64)
+    e_dense = solve(ff, r, e0, method="dense")
+    e_neu = solve(ff, r, e0, method="neumann", tol=1e-14)
+    torch.testing.assert_close(e_dense, e_neu, rtol=1e-11, atol=0)
+    assert torch.get_num_threads() == 2  # the guard restored the count
+
+
+def test_auto_picks_a_correct_method_with_two_threads(two_threads: None) -> None:
+    """The issue's case: 8 grey reflectances on a ~256-facet scene, method='auto'."""
+    n = 256
+    ff = random_reciprocal(n, scale=0.99, seed=3)
+    r = torch.linspace(0.1, 0.8, 8, dtype=F64)[:, None].expand(8, n)
+    e0 = torch.ones(n, 31, dtype=F64)
+    torch.testing.assert_close(solve(ff, r, e0), solve(ff, r, e0, method="cg", tol=1e-13), rtol=1e-10, atol=0)
