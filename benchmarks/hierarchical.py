@@ -118,7 +118,7 @@ def worker_hier(spec: dict) -> dict:
         g = ti.lights.light_geometry(LIGHT[spec["scene"]], H, scene)
         e0 = g[:, None] * torch.ones(31, dtype=torch.float64)
         t = time.perf_counter()
-        _, info = ti.solve(H, refl, e0, method="cg", tol=1e-6, return_info=True)
+        _, info = ti.solver.solve_with_info(H, refl, e0, method="cg", tol=1e-6)
         res["solve_s"] = time.perf_counter() - t
         res["iterations"] = info.iterations
     res["peak_rss_mb"] = peak_rss_mb()

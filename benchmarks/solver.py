@@ -85,7 +85,7 @@ def worker(cfg: dict) -> dict:
     import warnings
 
     from torch_interreflect import FormFactors
-    from torch_interreflect.solver import solve
+    from torch_interreflect.solver import solve, solve_with_info
     from torch_interreflect.solver.columns import solve_columns
     from torch_interreflect.solver.plan import Stats, get_plan
 
@@ -136,7 +136,7 @@ def worker(cfg: dict) -> dict:
         t_fb = timed(fwdbwd)  # first run: memory high-water mark of forward+backward
         out["peak_mib"] = peak_since(rss0)
         t0 = time.perf_counter()
-        _, info = solve(ff, r, e0, method=method, tol=TOL, return_info=True)
+        _, info = solve_with_info(ff, r, e0, method=method, tol=TOL)
         t_f = time.perf_counter() - t0
         out["iterations"] = info.iterations
         out["fwd_s"] = min(t_f, best_time(lambda: solve(ff, r, e0, method=method, tol=TOL), reps - 1))
@@ -200,7 +200,7 @@ def calibrate() -> None:
     import warnings
 
     from torch_interreflect import FormFactors
-    from torch_interreflect.solver import solve
+    from torch_interreflect.solver import solve, solve_with_info
     from torch_interreflect.solver.method import choose_method
     from torch_interreflect.solver.plan import get_plan
 
@@ -221,7 +221,7 @@ def calibrate() -> None:
                     warnings.simplefilter("ignore")
                     td = best_time(lambda ff=ff, r=r, e0=e0: solve(ff, r, e0, method="dense"), 3)
                     tc = best_time(lambda ff=ff, r=r, e0=e0: solve(ff, r, e0, method="cg"), 3)
-                    _, info = solve(ff, r, e0, method="cg", return_info=True)
+                    _, info = solve_with_info(ff, r, e0, method="cg")
                 pick = choose_method(get_plan(ff), r, 1e-6)
                 k = 1 if grey else ncol
                 best = "dense" if td < tc else "cg"
