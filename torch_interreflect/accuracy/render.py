@@ -207,9 +207,9 @@ def _light_factor(light: Any, scene: Scene, K: FormFactors, user: Tensor, num_us
         return lights.sky(scene, K, torch.ones(1, dtype=scene.dtype, device=scene.device))[:, 0]
     if isinstance(light, Tensor) and light.ndim == 1 and light.shape[0] == num_user and num_user != 3:
         if light.dtype == torch.bool:
-            return light_geometry(light.to(scene.device)[user], K, scene)
+            return light_geometry(scene, K, light.to(scene.device)[user])
         return light.to(device=scene.device, dtype=scene.dtype)[user]  # a factor per user facet: per leaf
-    return light_geometry(light, K, scene)
+    return light_geometry(scene, K, light)
 
 
 # -------------------------------------------------------------------------------------------- spectra
@@ -496,7 +496,7 @@ def plan(
     reason = ""
     while True:
         t = time.perf_counter()
-        K = _form_factors(leaves.scene, tol=ff_tol, progress=False)
+        K = _form_factors(leaves.scene, quadrature_tol=ff_tol, progress=False)
         occ = K.info.get("occluded_facets")
         if occ is not None and bool(occ.any()):  # user facets whose rows rest on ray-cast visibility
             sampled[leaves.user.cpu()[occ.cpu()]] = True
