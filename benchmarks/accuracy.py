@@ -112,7 +112,7 @@ def uniform(
     scene = ps[0]["scene"]
     t0 = time.perf_counter()
     fine, parent = scene.subdivide(k)
-    K = ti.form_factors(fine, tol=ff_tol, progress=False)
+    K = ti.form_factors(fine, quadrature_tol=ff_tol, progress=False)
     E0 = direct_light(fine, K, ps[0]["light_spec"])
     kernel_s = time.perf_counter() - t0
     out, solve_s = [], []

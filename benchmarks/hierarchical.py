@@ -65,7 +65,7 @@ def worker_dense(spec: dict) -> dict:
     t = time.perf_counter()
     K = ti.form_factors(scene, progress=False)
     t_kernel = time.perf_counter() - t
-    e0 = ti.lights.light_geometry(LIGHT[spec["scene"]], K, scene)[:, None]
+    e0 = ti.lights.light_geometry(scene, K, LIGHT[spec["scene"]])[:, None]
     out = {"prod": K.matmul(_columns(scene.num_facets)).numpy(), "rows": K.row_sums().numpy(), "e0": e0.numpy()}
     t = time.perf_counter()
     for r in (0.5, 0.9):
@@ -115,7 +115,7 @@ def worker_hier(spec: dict) -> dict:
         lam = torch.linspace(0, 1, 31, dtype=torch.float64)
         ph = torch.rand(n, 1, dtype=torch.float64, generator=torch.Generator().manual_seed(1))
         refl = 0.2 + 0.6 * (0.5 + 0.5 * torch.cos(6.0 * lam[None, :] + 6.0 * ph))
-        g = ti.lights.light_geometry(LIGHT[spec["scene"]], H, scene)
+        g = ti.lights.light_geometry(scene, H, LIGHT[spec["scene"]])
         e0 = g[:, None] * torch.ones(31, dtype=torch.float64)
         t = time.perf_counter()
         _, info = ti.solver.solve_with_info(H, refl, e0, method="cg", tol=1e-6)

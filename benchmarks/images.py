@@ -81,7 +81,7 @@ def reflectance(scene: ti.Scene) -> torch.Tensor:
 def ours(scene: ti.Scene, light, view: View) -> dict:
     t0 = time.perf_counter()
     K = ti.form_factors(scene)
-    g = ti.lights.light_geometry(light, K, scene) if light != "sky" else ti.lights.sky(
+    g = ti.lights.light_geometry(scene, K, light) if light != "sky" else ti.lights.sky(
         scene, K, torch.ones(1, dtype=torch.float64))[:, 0]
     r = reflectance(scene)
     # the light's spectrum: sun irradiance 1 W/m², or sky radiance 1/π (an open upward plane gets 1), as in Mitsuba

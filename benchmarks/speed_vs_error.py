@@ -6,7 +6,7 @@ irradiance of the built-in scenes from Mitsuba 3 at millions of paths per facet)
 * this library: ``form_factors`` (contour quadrature) + direct light + ``solve``, on the scene refined by
   ``Scene.subdivide(k)`` and area-averaged back onto the reference's facets, at several refinements,
   quadrature tolerances and solver tolerances, and with 2, 3, 4 and ∞ bounces;
-* the paper's Monte Carlo kernel (``form_factors(method="monte_carlo", samples=n)``) at several ``n``;
+* the paper's Monte Carlo kernel (``form_factors(method="monte_carlo", rays_per_facet=n)``) at several ``n``;
 * Mitsuba 3 (``path`` integrator, irradiance-meter estimator batched over facets) at several sample counts,
 
 on the same machine in the same run, and reports per-facet relative RMSE and max error against the reference,
@@ -98,10 +98,10 @@ class Ours:
             def run() -> tuple:
                 fine, parent = self.scene.subdivide(k)
                 if method == "quadrature":
-                    K = ti.form_factors(fine, tol=tol, progress=False)
+                    K = ti.form_factors(fine, quadrature_tol=tol, progress=False)
                 else:
                     g = torch.Generator().manual_seed(seed)
-                    K = ti.form_factors(fine, method="monte_carlo", samples=samples, generator=g, progress=False)
+                    K = ti.form_factors(fine, method="monte_carlo", rays_per_facet=samples, generator=g, progress=False)
                 E0 = direct_light(fine, K, self.light)
                 return fine, parent, K, E0
 

@@ -7,7 +7,6 @@ import torch_interreflect as ti
 from torch_interreflect.errors import ShapeError, ValueRangeError
 
 
-@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 def test_directional_cosine_law_without_shadows(dtype):
     s = ti.scenes.v_groove(90.0, divisions=1, dtype=dtype)
     d = torch.tensor([-1.0, 0.0, -1.0], dtype=dtype)  # 45° from above, travelling toward -x
@@ -23,7 +22,7 @@ def test_v_groove_shadow_from_the_overhanging_plate():
     # 45° groove, light straight down: plate B overhangs plate A up to x = w cos 45°
     w = 0.06
     s = ti.scenes.v_groove(45.0, size=(0.09, w), divisions=(1, 60), dtype=torch.float64)
-    lit = ti.lights.lit_fraction(s, torch.tensor([0.0, 0.0, -1.0]), samples=2)
+    lit = ti.lights.lit_fraction(s, torch.tensor([0.0, 0.0, -1.0]), shadow_samples=2)
     plate_a = lit[:60]
     x = s.centroids[:60, 0]
     shadow_edge = w * math.cos(math.radians(45.0))
@@ -39,6 +38,10 @@ def test_directional_batch_of_spectra_and_gradients():
     spd = torch.rand(4, 7, dtype=torch.float64, requires_grad=True)
     E0 = ti.lights.directional(s, torch.tensor([-1.0, -2.0, -3.0], dtype=torch.float64), spd)
     assert E0.shape == (4, s.num_facets, 7)
+    # an inside corner lit from (+, +, +): nothing shades; E0_i = spd · n_i·(−d)/|d| (floor z, walls x and y)
+    cos = s.normals @ torch.tensor([1.0, 2.0, 3.0], dtype=torch.float64) / 14**0.5
+    assert float(cos.min()) > 0
+    torch.testing.assert_close(E0, cos[:, None] * spd[:, None, :], rtol=1e-12, atol=0)
     E0.sum().backward()
     assert spd.grad is not None and bool((spd.grad > 0).all())
 
@@ -63,10 +66,31 @@ def test_sky_is_pi_l_times_the_open_part():
     assert float(E0c.abs().max()) < 1e-5  # a closed box sees no sky
 
 
-def test_uniform_light():
-    s = ti.scenes.box_corner(divisions=1)
-    E0 = ti.lights.uniform(s, torch.ones(2, 31))
-    assert E0.shape == (2, 3, 31)
+def test_uniform_light(dtype):
+    s = ti.scenes.box_corner(divisions=1, dtype=dtype)
+    spd = torch.rand(2, 31, dtype=dtype, generator=torch.Generator().manual_seed(0))
+    E0 = ti.lights.uniform(s, spd)
+    assert E0.shape == (2, 3, 31) and E0.dtype == dtype
+    for i in range(3):  # every facet gets the spectrum itself
+        torch.testing.assert_close(E0[:, i], spd, rtol=0, atol=0)
+
+
+def test_light_geometry_takes_scene_form_factors_light_and_the_old_order_warns():
+    s = ti.scenes.v_groove(90.0, size=(1.0, 1.0), divisions=1, dtype=torch.float64)
+    K = ti.form_factors(s)
+    g = ti.lights.light_geometry(s, K, "sky")
+    torch.testing.assert_close(g, torch.full((2,), math.pi * (1 - 0.2000438), dtype=torch.float64), rtol=1e-6, atol=0)
+    torch.testing.assert_close(ti.lights.light_geometry(None, K, "sky"), g)
+    with pytest.warns(DeprecationWarning, match=r"light_geometry\(scene, form_factors, light\)"):
+        old = ti.lights.light_geometry("sky", K)
+    torch.testing.assert_close(old, g)
+    with pytest.warns(DeprecationWarning):
+        old = ti.lights.light_geometry([0.0, 0.0, -1.0], K, s)
+    assert old.tolist() == [1.0, 0.0]
+    with pytest.warns(DeprecationWarning, match="shadow_samples"):
+        ti.lights.lit_fraction(s, torch.tensor([0.0, 0.0, -1.0]), samples=2)
+    with pytest.warns(DeprecationWarning, match="sky_samples"):
+        ti.lights.sky(s, K, torch.ones(1, dtype=torch.float64), samples=4)
 
 
 def test_bad_light_input():

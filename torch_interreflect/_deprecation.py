@@ -2,11 +2,15 @@
 
 from __future__ import annotations
 
+import functools
 import importlib
 import warnings
-from typing import Any
+from collections.abc import Callable
+from typing import Any, TypeVar
 
-__all__ = ["moved_attribute"]
+__all__ = ["moved_attribute", "renamed_keywords"]
+
+F = TypeVar("F", bound=Callable[..., Any])
 
 _WARNED: set[str] = set()
 
@@ -32,3 +36,32 @@ def moved_attribute(module: str, name: str, moved: dict[str, Any]) -> Any:
             stacklevel=3,
         )
     return getattr(importlib.import_module(new_module), new_name)
+
+
+def renamed_keywords(**renames: str) -> Callable[[F], F]:
+    """Decorator: accept old keyword names for one release, with a ``DeprecationWarning`` naming the new one.
+
+    ``@renamed_keywords(tol="quadrature_tol")`` maps a call ``f(..., tol=x)`` to ``f(..., quadrature_tol=x)``;
+    passing both names raises ``TypeError``.
+    """
+
+    def wrap(func: F) -> F:
+        @functools.wraps(func)
+        def inner(*args: Any, **kwargs: Any) -> Any:
+            for old, new in renames.items():
+                if old not in kwargs:
+                    continue
+                if new in kwargs:
+                    raise TypeError(f"{func.__qualname__}() got both {old!r} (old name) and {new!r}; pass only {new!r}")
+                warnings.warn(
+                    f"{func.__qualname__}({old}=...) is now {func.__qualname__}({new}=...); the old keyword "
+                    "will be removed in the next release",
+                    DeprecationWarning,
+                    stacklevel=2,
+                )
+                kwargs[new] = kwargs.pop(old)
+            return func(*args, **kwargs)
+
+        return inner  # type: ignore[return-value]
+
+    return wrap

@@ -11,6 +11,8 @@ __all__ = [
     "ConvergenceWarning",
     "DeviceError",
     "GeometryError",
+    "GeometryWarning",
+    "InsufficientMemoryError",
     "ShapeError",
     "SingularSystemError",
     "SpectralDataError",
@@ -48,3 +50,13 @@ class AccuracyWarning(UserWarning):
 
 class DeviceError(ValueError):
     """Tensors that must share a device do not (nothing is moved between devices silently)."""
+
+
+class InsufficientMemoryError(MemoryError):
+    """A computation would need more memory than the machine has; raised before allocating, with the estimate,
+    the memory available and a way that needs less (e.g. ``hierarchical_form_factors``)."""
+
+
+class GeometryWarning(UserWarning):
+    """The geometry is valid but probably not what was meant (e.g. no facet pair can exchange light because the
+    facets face away from each other: normals pointing out of a concave mesh)."""

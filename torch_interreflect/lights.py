@@ -22,14 +22,16 @@ geometric factor ``g [F]`` computed once at construction (DESIGN.md §3):
 from __future__ import annotations
 
 import math
+import warnings
 from collections.abc import Sequence
 from typing import Literal
 
 import torch
 from torch import Tensor
 
+from ._deprecation import renamed_keywords
 from .errors import ShapeError, ValueRangeError
-from .formfactors.operator import FormFactors
+from .formfactors.operator import FormFactorOperator
 from .geometry.scene import Scene
 
 __all__ = ["back_coverage", "directional", "light_geometry", "lit_fraction", "sky", "uniform"]
@@ -47,25 +49,27 @@ def _check_spd(spd: Tensor, name: str) -> Tensor:
     return spd
 
 
+@renamed_keywords(samples="shadow_samples")
 def lit_fraction(
-    scene: Scene, direction: Tensor, *, shadows: Literal["auto"] | bool = "auto", samples: int = 4
+    scene: Scene, direction: Tensor, *, shadows: Literal["auto"] | bool = "auto", shadow_samples: int = 4
 ) -> Tensor:
     """Fraction of each facet's area that a directional light reaches (1 where nothing can cast a shadow).
 
     Args:
         scene: The scene.
         direction: Direction the light travels (from the light into the scene), shape ``[3]``.
-        shadows: ``"auto"`` casts rays only from lit facets that have another facet in front of them;
-            ``True`` from every lit facet; ``False`` casts none.
-        samples: Rays per direction on each facet (``samples²`` midpoint-rule points per facet).
+        shadows: ``"auto"`` casts rays only from lit facets that have another facet in front of them (found in
+            row blocks, memory ``O(F)`` per block); ``True`` from every lit facet; ``False`` casts none.
+        shadow_samples: Rays per direction on each facet (``shadow_samples²`` midpoint-rule points per facet;
+            formerly ``samples``).
 
     Returns:
         Lit fraction in [0, 1], shape ``[F]``, in the scene's dtype (facets facing away get 0).
     """
     if shadows not in ("auto", True, False):
         raise ValueError(f"shadows must be 'auto', True or False; got {shadows!r}")
-    if int(samples) < 1:
-        raise ValueError(f"samples must be >= 1; got {samples}")
+    if int(shadow_samples) < 1:
+        raise ValueError(f"shadow_samples must be >= 1; got {shadow_samples}")
     d = torch.as_tensor(direction, dtype=torch.float64).detach().cpu().reshape(-1)
     if d.numel() != 3 or not bool(torch.isfinite(d).all()) or float(d.norm()) == 0.0:
         raise ValueRangeError(f"direction must be a finite nonzero 3-vector; got {d.tolist()}")
@@ -75,16 +79,16 @@ def lit_fraction(
     frac = (cos > 0).to(torch.float64)
     if shadows is False:
         return frac.to(scene.dtype).to(scene.device)
-    from .geometry._polygon import bilinear, facing_others
+    from .geometry._polygon import bilinear, facing_any
 
     lit = cos > 0
     if shadows == "auto":
-        lit = lit & facing_others(scene).any(1)
+        lit = lit & facing_any(scene)
     idx = torch.nonzero(lit).reshape(-1)
     if idx.numel():
         from .geometry.raycast import RayCaster
 
-        n = int(samples)
+        n = int(shadow_samples)
         g = (torch.arange(n, dtype=torch.float64) + 0.5) / n
         x, jac = bilinear(sc.corners[idx], g.repeat_interleave(n), g.repeat(n))
         caster = RayCaster(sc)
@@ -94,13 +98,14 @@ def lit_fraction(
     return frac.to(scene.dtype).to(scene.device)
 
 
+@renamed_keywords(samples="shadow_samples")
 def directional(
     scene: Scene,
     direction: Tensor,
     spd: Tensor,
     *,
     shadows: Literal["auto"] | bool = "auto",
-    samples: int = 4,
+    shadow_samples: int = 4,
 ) -> Tensor:
     """Direct irradiance from a distant (sun-like) light: ``E0_i = spd · max(0, n_i·(−d)) · lit_i``.
 
@@ -109,7 +114,7 @@ def directional(
         direction: Direction the light travels, shape ``[3]`` (need not be unit length). Differentiable.
         spd: Spectral irradiance on a plane facing the light, W·m⁻²·nm⁻¹, shape ``[..., L]``.
         shadows: See :func:`lit_fraction`.
-        samples: Shadow rays per direction on each facet.
+        shadow_samples: Shadow rays per direction on each facet (formerly ``samples``).
 
     Returns:
         ``E0`` in W·m⁻²·nm⁻¹.
@@ -131,20 +136,21 @@ def directional(
         d = d.to(spd.dtype)
     if d.numel() != 3:
         raise ShapeError(f"direction must have 3 components; got shape {list(d.shape)}")
-    lit = lit_fraction(scene, d, shadows=shadows, samples=samples).to(spd.dtype).to(spd.device)
+    lit = lit_fraction(scene, d, shadows=shadows, shadow_samples=shadow_samples).to(spd.dtype).to(spd.device)
     dn = d.reshape(3).to(spd.dtype).to(spd.device)
     dn = dn / dn.norm()
     cos = (-(scene.normals.to(spd.dtype).to(spd.device) @ dn)).clamp_min(0)
     return (cos * lit)[:, None] * spd[..., None, :]
 
 
+@renamed_keywords(samples="sky_samples")
 def sky(
     scene: Scene,
-    form_factors: FormFactors,
+    form_factors: FormFactorOperator,
     spd: Tensor,
     *,
     backfaces: Literal["auto"] | bool = "auto",
-    samples: int = 16,
+    sky_samples: int = 16,
 ) -> Tensor:
     """Direct irradiance from a uniform diffuse sky of radiance ``spd``: ``E0_i = π L (1 − Σ_j F_ij − b_i)``.
 
@@ -158,9 +164,10 @@ def sky(
         form_factors: Its form factors.
         spd: Sky radiance, W·sr⁻¹·m⁻²·nm⁻¹, shape ``[..., L]``.
         backfaces: ``"auto"`` estimates ``b_i`` only for facets that have another facet's back in front of
-            them; ``True`` for every facet; ``False`` never (``b = 0``).
-        samples: Jittered stratified cosine-weighted directions per axis (``samples²`` per point, 8 × 8 points
-            per facet) for the ray-cast parts (``b``, and the open part of facets with occluded pairs).
+            them (found in row blocks, no ``[F, F]`` matrix); ``True`` for every facet; ``False`` never (``b = 0``).
+        sky_samples: Jittered stratified cosine-weighted directions per axis (``sky_samples²`` per point, 8 × 8
+            points per facet) for the ray-cast parts (``b``, and the open part of facets with occluded pairs;
+            formerly ``samples``).
 
     Shape:
         - output: ``[..., F, L]``
@@ -181,49 +188,46 @@ def sky(
         raise ValueError(f"backfaces must be 'auto', True or False; got {backfaces!r}")
     open_part = 1.0 - form_factors.row_sums().detach().to(torch.float64).cpu()
     if backfaces is not False:
-        open_part = open_part - back_coverage(scene, only_where_possible=backfaces == "auto", samples=samples)
+        open_part = open_part - back_coverage(scene, only_where_possible=backfaces == "auto", sky_samples=sky_samples)
     approx = form_factors.info.get("occluded_facets")
     if backfaces is not False and approx is not None and bool(approx.any()):
         # where rows of F rest on ray-cast visibility, 1 − Σ_j F_ij is a small difference of estimates: count the
         # escaping rays directly instead (both sides of every facet block the sky)
         idx = torch.nonzero(approx.cpu()).reshape(-1)
-        escape, _ = _hemisphere_fractions(scene.to(torch.float64).to("cpu"), idx, samples=samples, points=8)
+        escape, _ = _hemisphere_fractions(scene.to(torch.float64).to("cpu"), idx, samples=sky_samples, points=8)
         open_part[idx] = escape
     open_part = open_part.clamp_min(0).to(spd.dtype).to(spd.device)
     return math.pi * open_part[:, None] * spd[..., None, :]
 
 
+@renamed_keywords(samples="sky_samples")
 def back_coverage(
-    scene: Scene, *, only_where_possible: bool = True, samples: int = 12, points: int = 8
+    scene: Scene, *, only_where_possible: bool = True, sky_samples: int = 12, points: int = 8
 ) -> Tensor:
     """Fraction of each facet's cosine-weighted hemisphere that sees the back side of some facet.
 
-    Estimated with stratified cosine-weighted rays (``samples²`` directions from each of ``points²`` midpoint
+    Estimated with stratified cosine-weighted rays (``sky_samples²`` directions from each of ``points²`` midpoint
     points per facet), first hits only, so occlusion is included.
 
     Args:
         scene: The scene.
         only_where_possible: Cast rays only from facets that have a facet in front of them which they see from
-            behind (all others get exactly 0).
-        samples: Directions per axis.
+            behind (all others get exactly 0; found in row blocks, no ``[F, F]`` matrix).
+        sky_samples: Directions per axis (formerly ``samples``).
         points: Points per axis on each facet.
 
     Returns:
         ``b [F]`` in [0, 1], float64 on the CPU.
     """
-    from .geometry._polygon import facing_others
+    from .geometry._polygon import facing_any
 
     sc = scene.to(torch.float64).to("cpu")
     F = sc.num_facets
     b = torch.zeros(F, dtype=torch.float64)
-    if only_where_possible:
-        front = facing_others(scene)
-        idx = torch.nonzero((front & ~front.T).any(1)).reshape(-1)
-    else:
-        idx = torch.arange(F)
+    idx = torch.nonzero(facing_any(scene, one_way=True)).reshape(-1) if only_where_possible else torch.arange(F)
     if idx.numel() == 0:
         return b
-    b[idx] = _hemisphere_fractions(sc, idx, samples=samples, points=points)[1]
+    b[idx] = _hemisphere_fractions(sc, idx, samples=sky_samples, points=points)[1]
     return b
 
 
@@ -282,19 +286,23 @@ def uniform(scene: Scene, spd: Tensor) -> Tensor:
 
 
 def light_geometry(
-    light: str | Tensor | Sequence[float],
-    form_factors: FormFactors,
-    scene: Scene | None = None,
+    scene: Scene | None,
+    form_factors: FormFactorOperator,
+    light: str | Tensor | Sequence[float] | None = None,
     *,
     shadows: str | bool = "auto",
 ) -> Tensor:
     """The geometric factor ``g [F]`` of a light: ``E0[..., i, :] = g_i · spectrum`` (see the module docstring).
 
+    Arguments come in the order of every light function, ``(scene, form_factors, light)``. The old order
+    ``light_geometry(light, form_factors, scene=None)`` still works for one release, with a
+    ``DeprecationWarning``.
+
     Args:
+        scene: The scene (directional lights and material names need it; ``None`` for the others).
+        form_factors: The scene's form factors (``"sky"`` and area lights use them).
         light: ``"uniform"``, ``"sky"``, a direction ``[3]``, a material name, a boolean mask ``[F]`` (area light),
             or ``g`` itself as a floating tensor ``[F]``.
-        form_factors: The scene's form factors (``"sky"`` and area lights use them).
-        scene: The scene (directional lights and material names need it).
         shadows: Shadow handling of directional lights (see :func:`torch_interreflect.lights.lit_fraction`).
 
     Returns:
@@ -308,9 +316,21 @@ def light_geometry(
         >>> import torch_interreflect as ti
         >>> from torch_interreflect.lights import light_geometry
         >>> scene = ti.scenes.v_groove(90.0, divisions=1)
-        >>> light_geometry([0.0, 0.0, -1.0], ti.form_factors(scene), scene).tolist()
+        >>> light_geometry(scene, ti.form_factors(scene), [0.0, 0.0, -1.0]).tolist()
         [1.0, 0.0]
     """
+    if scene is not None and not isinstance(scene, Scene):  # the old order (light, form_factors, scene)
+        warnings.warn(
+            "light_geometry(light, form_factors, scene) is now light_geometry(scene, form_factors, light) (the "
+            "order of every light function); the old order will be removed in the next release",
+            DeprecationWarning,
+            stacklevel=2,
+        )
+        scene, light = light, scene
+        if scene is not None and not isinstance(scene, Scene):
+            raise TypeError(f"scene must be a Scene or None; got {type(scene).__name__}")
+    if light is None:
+        raise TypeError("light_geometry() needs a light: light_geometry(scene, form_factors, light)")
     n = form_factors.num_facets
     dtype, device = form_factors.dtype, form_factors.device
     if isinstance(light, str):
@@ -325,7 +345,7 @@ def light_geometry(
                 f"of the scene {names}; got {light!r}"
             )
         mask = scene.material == scene.material_names.index(light)
-        return light_geometry(mask.to(device), form_factors, scene)
+        return light_geometry(scene, form_factors, mask.to(device))
     t = torch.as_tensor(light)
     if t.dtype == torch.bool:
         if t.shape != (n,):

@@ -4,7 +4,7 @@ import pytest
 import torch
 
 import torch_interreflect as ti
-from torch_interreflect.errors import ShapeError, ValueRangeError
+from torch_interreflect.errors import DeviceError, ShapeError, ValueRangeError
 
 # Stated accuracy at the default eta = 0.5 (README "Large scenes", benchmarks/results/hierarchical.md): relative
 # RMS error of products and row sums of about 1-1.5 % at ~5,000 facets, less on smaller scenes (fewer far blocks).
@@ -152,3 +152,16 @@ def test_bad_input():
                  method="dense")
     with pytest.raises(ValueRangeError, match="reflectance"):
         ti.solve(hier, torch.full((24,), 1.5, dtype=torch.float64), torch.ones(24, 1, dtype=torch.float64))
+
+
+def test_operator_promotes_dtypes_like_solve_and_refuses_other_devices():
+    sc = ti.scenes.closed_box(divisions=3, dtype=torch.float32)
+    hier = ti.hierarchical_form_factors(sc, leaf_size=2)
+    assert hier.dtype == torch.float32 and hier.num_far_blocks > 0
+    x = torch.rand(sc.num_facets, 2, dtype=torch.float64, generator=torch.Generator().manual_seed(0))
+    y = hier.matmul(x)  # float32 operator, float64 input: computed and returned in float64
+    assert y.dtype == torch.float64
+    torch.testing.assert_close(y, hier.to(torch.float64).matmul(x), rtol=0, atol=0)
+    assert hier.matmul(x.float()).dtype == torch.float32
+    with pytest.raises(DeviceError, match=r"meta.*cpu"):
+        hier.matmul(x.to("meta"))

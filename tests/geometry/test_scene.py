@@ -104,9 +104,13 @@ def test_subdivide_rejects_bad_k():
         ti.scenes.box_corner(divisions=1).subdivide(0)
 
 
-def test_to_moves_dtype():
-    s = ti.scenes.box_corner(divisions=2).to(torch.float64)
-    assert s.dtype == torch.float64 and s.material.dtype == torch.int64
+def test_to_moves_dtype(dtype):
+    s32 = ti.scenes.box_corner(divisions=2, dtype=torch.float32)
+    s = s32.to(dtype)
+    assert s.dtype == dtype and s.material.dtype == torch.int64
+    torch.testing.assert_close(s.corners, s32.corners.to(dtype), rtol=0, atol=0)
+    assert torch.equal(s.material, s32.material) and torch.equal(s.is_triangle, s32.is_triangle)
+    torch.testing.assert_close(s.areas.sum(), torch.tensor(3.0, dtype=dtype))  # three unit squares
 
 
 @pytest.mark.parametrize("angle", [30.0, 45.0, 90.0, 150.0])

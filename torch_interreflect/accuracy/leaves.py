@@ -98,12 +98,12 @@ def light_factor(light: Any, scene: Scene, K: FormFactors, user: Tensor, num_use
     """Geometric factor ``g [n]`` of the light on the leaves: ``E0 = g ⊗ spectrum``."""
     if isinstance(light, str) and light == "sky":
         one = torch.ones(1, dtype=scene.dtype, device=scene.device)
-        return lights.sky(scene, K, one, samples=SKY_SAMPLES)[:, 0]
+        return lights.sky(scene, K, one, sky_samples=SKY_SAMPLES)[:, 0]
     if isinstance(light, Tensor) and light.ndim == 1 and light.shape[0] == num_user and num_user != 3:
         if light.dtype == torch.bool:
-            return light_geometry(light.to(scene.device)[user], K, scene)
+            return light_geometry(scene, K, light.to(scene.device)[user])
         return light.to(device=scene.device, dtype=scene.dtype)[user]  # a factor per user facet: per leaf
-    return light_geometry(light, K, scene)
+    return light_geometry(scene, K, light)
 
 
 def light_check(light: Any, scene: Scene, K: FormFactors) -> Tensor | None:
@@ -117,7 +117,7 @@ def light_check(light: Any, scene: Scene, K: FormFactors) -> Tensor | None:
     if not (isinstance(light, str) and light == "sky"):
         return None
     one = torch.ones(1, dtype=scene.dtype, device=scene.device)
-    return lights.sky(scene, K, one, samples=SKY_CHECK_SAMPLES)[:, 0]
+    return lights.sky(scene, K, one, sky_samples=SKY_CHECK_SAMPLES)[:, 0]
 
 
 def _chosen(est: Tensor, target: float) -> list[int]:

@@ -128,7 +128,7 @@ def _start(pb: Problem) -> Refinement:
 def _kernel_and_light(pb: Problem, st: Refinement) -> None:
     """Form factors and light factor of the current leaves (and which user facets rest on ray casting)."""
     t = time.perf_counter()
-    st.K = compute_form_factors(st.leaves.scene, tol=pb.quadrature_tol, progress=False)
+    st.K = compute_form_factors(st.leaves.scene, quadrature_tol=pb.quadrature_tol, progress=False)
     occ = st.K.info.get("occluded_facets")
     if occ is not None and bool(occ.any()):  # user facets whose rows rest on ray-cast visibility
         st.sampled[st.leaves.user.cpu()[occ.cpu()]] = True

@@ -4,7 +4,9 @@
 - :mod:`.quadrature`: :func:`form_factors` (Lambert's contour formula, adaptive Gauss quadrature).
 - :mod:`.contour`: :func:`point_polygon_factor`; :mod:`.rules`: quadrature rules and orders.
 - :mod:`.visibility`: occlusion by Embree rays; :mod:`.montecarlo`: the paper's estimator.
-- :mod:`.hierarchical`: :func:`hierarchical_form_factors` for large scenes (cluster tree, far blocks).
+- :mod:`.hierarchical`: :func:`hierarchical_form_factors` for large scenes (the builder), with
+  :mod:`.hierarchical_operator` (:class:`HierarchicalFormFactors`), :mod:`.cluster_tree` (cluster tree and
+  traversal) and :mod:`.cluster_visibility` (visible fraction of far blocks).
 """
 
 from .contour import point_polygon_factor

@@ -18,13 +18,17 @@
 from __future__ import annotations
 
 import time
-from typing import Literal
+import warnings
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any, Literal
 
 import torch
 from torch import Tensor
 from tqdm.auto import tqdm
 
-from ..errors import ValueRangeError
+from .._deprecation import renamed_keywords
+from ..errors import GeometryError, GeometryWarning, ValueRangeError
 from ..geometry._polygon import (
     bilinear,
     clip_polygons,
@@ -35,37 +39,31 @@ from ..geometry._polygon import (
 )
 from ..geometry.scene import Scene
 from .contour import point_polygon_factor
+from .memory import check_memory, dense_kernel_bytes
 from .montecarlo import monte_carlo
 from .operator import FormFactors
 from .rules import default_adjacent_order, order_for, quadrature_rule
 from .visibility import PointVisibility, blocker_candidates
 
-__all__ = ["form_factors", "pair_values"]
+__all__ = ["PairClasses", "classify_pairs", "form_factors", "integrate_clipped", "integrate_groups", "pair_values",
+           "rule_groups"]
 
 #: Dense storage up to this many facets; sparse CSR above it when at most ``_SPARSE_DENSITY`` is nonzero.
 _DENSE_MAX_FACETS = 4096
 _SPARSE_DENSITY = 0.25
 
 
-# ---------------------------------------------------------------------------------------------- rules
-
-
-# ----------------------------------------------------------------------------------- the integrand
-
-
-# ------------------------------------------------------------------------------- pair selection
-
-
 # ------------------------------------------------------------------------------------ main entry
+@renamed_keywords(tol="quadrature_tol", samples="rays_per_facet")
 def form_factors(
     scene: Scene,
     *,
     method: Literal["quadrature", "monte_carlo"] = "quadrature",
     occlusion: Literal["auto"] | bool = "auto",
-    tol: float = 1e-6,
+    quadrature_tol: float = 1e-6,
     adjacent_order: int | None = None,
     visibility_samples: int = 3,
-    samples: int = 100_000,
+    rays_per_facet: int = 100_000,
     layout: Literal["auto", "dense", "sparse"] = "auto",
     generator: torch.Generator | None = None,
     chunk_points: int = 1 << 18,
@@ -73,19 +71,25 @@ def form_factors(
 ) -> FormFactors:
     """Form factors ``F_ij`` of a scene: the fraction of light leaving facet i that arrives at facet j.
 
+    The dense kernel holds ``[F, F]`` matrices (the facing test, and the result when dense) and ~200 bytes per
+    facet pair that can exchange light; the memory is estimated before anything large is allocated, and a
+    scene that does not fit raises :class:`~torch_interreflect.errors.InsufficientMemoryError` (use
+    :func:`~torch_interreflect.hierarchical_form_factors` for such scenes).
+
     Args:
         scene: The scene.
         method: ``"quadrature"`` (exact contour formula with adaptive Gauss quadrature, the default) or
-            ``"monte_carlo"`` (the paper's estimator: ``samples`` cosine-distributed rays per facet).
+            ``"monte_carlo"`` (the paper's estimator: ``rays_per_facet`` cosine-distributed rays per facet).
         occlusion: ``"auto"`` casts visibility rays only for pairs that some third facet could block (none in
             a V-groove, a box corner or a closed box); ``True`` casts them for every pair, ``False`` ignores
             occlusion.
-        tol: Target relative accuracy of each entry; sets the quadrature order of every pair.
+        quadrature_tol: Target relative accuracy of each entry; sets the quadrature order of every pair
+            (formerly ``tol``).
         adjacent_order: Gauss order (per direction) for pairs that share an edge or a vertex (default from
-            ``tol``; these use rules graded toward the shared edge).
+            ``quadrature_tol``; these use rules graded toward the shared edge).
         visibility_samples: Points per direction on the target facet for visibility rays: every quadrature
             point of a pair that a third facet could block casts ``visibility_samples²`` kernel-weighted rays.
-        samples: Rays per facet for ``method="monte_carlo"``.
+        rays_per_facet: Rays per facet for ``method="monte_carlo"`` (formerly ``samples``).
         layout: Storage of the matrix: dense, sparse CSR, or chosen by size and density.
         generator: Random generator for ``method="monte_carlo"``.
         chunk_points: Quadrature points × polygon corners evaluated at once; the default keeps every
@@ -94,7 +98,16 @@ def form_factors(
 
     Returns:
         :class:`~torch_interreflect.FormFactors` in the scene's dtype and device, with ``info``
-        saying what was done (pairs, quadrature points, rays, seconds).
+        saying what was done (pairs, quadrature points, rays, seconds, ``max_row_sum``).
+
+    Raises:
+        InsufficientMemoryError: the estimated memory exceeds what the machine has available.
+        GeometryError: a row sums above 1 by more than the quadrature's tolerance (overlapping or intersecting
+            facets that ``Scene(duplicates="keep")`` let through).
+
+    Warns:
+        GeometryWarning: no facet pair can exchange light although the facets' other sides could (normals
+            pointing out of a concave mesh: see ``Scene.from_trimesh(side=...)``).
 
     Shape:
         - output ``.to_dense()``: ``[F, F]``
@@ -105,31 +118,25 @@ def form_factors(
         >>> float(K.row_sums().min()) > 0.999999
         True
     """
-    if not isinstance(scene, Scene):
-        raise TypeError(f"form_factors expects a Scene; got {type(scene).__name__}")
-    if method not in ("quadrature", "monte_carlo"):
-        raise ValueError(f"method must be 'quadrature' or 'monte_carlo'; got {method!r}")
-    if occlusion not in ("auto", True, False):
-        raise ValueError(f"occlusion must be 'auto', True or False; got {occlusion!r}")
-    if not (0.0 < tol < 1.0):
-        raise ValueRangeError(f"tol must lie in (0, 1); got {tol}")
-    if layout not in ("auto", "dense", "sparse"):
-        raise ValueError(f"layout must be 'auto', 'dense' or 'sparse'; got {layout!r}")
+    _check_arguments(scene, method, occlusion, quadrature_tol, layout)
     t0 = time.perf_counter()
     F = scene.num_facets
     if progress is None:
         progress = F >= 2000
+    if layout == "auto" and F <= _DENSE_MAX_FACETS:
+        layout = "dense"
     if method == "monte_carlo":
-        rows, cols, vals, info = monte_carlo(scene, samples, generator)
+        rows, cols, vals, info = monte_carlo(scene, rays_per_facet, generator)
     else:
+        itemsize = torch.empty(0, dtype=scene.dtype).element_size()
         rows, cols, vals, info = _quadrature(
-            scene, occlusion, tol, adjacent_order, visibility_samples, chunk_points, progress
+            scene, occlusion, quadrature_tol, adjacent_order, visibility_samples, chunk_points, progress,
+            output=(layout, itemsize),
         )
-    scene.areas.detach().to(torch.float64)
+    info["max_row_sum"] = _check_row_sums(rows, vals, F, quadrature_tol, method, occlusion, info.get("occluded_facets"))
     out_dtype, dev = scene.dtype, scene.device
     if layout == "auto":
-        nnz = rows.numel()
-        layout = "sparse" if (F > _DENSE_MAX_FACETS and nnz <= _SPARSE_DENSITY * F * F) else "dense"
+        layout = "sparse" if rows.numel() <= _SPARSE_DENSITY * F * F else "dense"
     if layout == "dense":
         mat = torch.zeros(F, F, dtype=torch.float64, device=vals.device)
         mat[rows, cols] = vals
@@ -138,7 +145,58 @@ def form_factors(
         matrix = torch.sparse_coo_tensor(torch.stack([rows, cols]), vals, (F, F)).coalesce()
         matrix = matrix.to(out_dtype).to_sparse_csr()
     info.update(method=method, seconds=time.perf_counter() - t0, layout=layout, nnz=int(rows.numel()))
+    if method == "quadrature":
+        info["quadrature_tol"] = quadrature_tol  # the solver's closure-error bound reads it
     return FormFactors(matrix.to(dev), scene.areas.detach().to(out_dtype), info)
+
+
+def _check_arguments(scene: Scene, method: str, occlusion: Any, quadrature_tol: float, layout: str) -> None:
+    if not isinstance(scene, Scene):
+        raise TypeError(f"form_factors expects a Scene; got {type(scene).__name__}")
+    if method not in ("quadrature", "monte_carlo"):
+        raise ValueError(f"method must be 'quadrature' or 'monte_carlo'; got {method!r}")
+    if occlusion not in ("auto", True, False):
+        raise ValueError(f"occlusion must be 'auto', True or False; got {occlusion!r}")
+    if not (0.0 < quadrature_tol < 1.0):
+        raise ValueRangeError(f"quadrature_tol must lie in (0, 1); got {quadrature_tol}")
+    if layout not in ("auto", "dense", "sparse"):
+        raise ValueError(f"layout must be 'auto', 'dense' or 'sparse'; got {layout!r}")
+
+
+#: A row may exceed 1 by this many times ``quadrature_tol`` (the quadrature's error on a closed row: measured
+#: below 1e-8 at the default 1e-6).
+ROW_SUM_SLACK = 10.0
+#: A row with ray-cast visibility may exceed 1 by this much (estimated visibility: up to 0.84 % measured on the
+#: Cornell box and the room at the default ``visibility_samples``; duplicated surfaces give 40-60 %).
+OCCLUDED_ROW_SLACK = 0.05
+
+
+def _check_row_sums(
+    rows: Tensor, vals: Tensor, F: int, quadrature_tol: float, method: str, occlusion: Any, occluded: Any
+) -> float:
+    """The largest row sum of ``F`` (float64); ``GeometryError`` when a row exceeds 1 beyond the kernel's tolerance.
+
+    Not checked for ``method="monte_carlo"`` (a row counts first hits of its rays: it cannot exceed 1) nor for
+    ``occlusion=False`` (facets hidden behind others are counted: rows may exceed 1 by design).
+    """
+    if rows.numel() == 0:
+        return 0.0
+    sums = torch.zeros(F, dtype=torch.float64).index_add_(0, rows, vals)
+    if method != "quadrature" or occlusion is False:
+        return float(sums.max())
+    limit = torch.full((F,), 1.0 + max(ROW_SUM_SLACK * quadrature_tol, 1e-12), dtype=torch.float64)
+    if isinstance(occluded, Tensor):
+        limit[occluded] = 1.0 + OCCLUDED_ROW_SLACK
+    bad = torch.nonzero(sums > limit).reshape(-1)
+    if bad.numel():
+        worst = int(bad[torch.argmax(sums[bad] - limit[bad])])
+        raise GeometryError(
+            f"form-factor rows must sum to at most 1; got {float(sums[worst]):.6g} at facet {worst} ({bad.numel()} "
+            f"rows above their tolerance, here 1 + {float(limit[worst]) - 1:.1e}). The scene probably holds "
+            "overlapping or intersecting facets (the same surface counted twice); build it with "
+            "Scene(..., duplicates='error') to name coincident ones, or 'drop' to remove them"
+        )
+    return float(sums.max())
 
 
 def _quadrature(
@@ -149,23 +207,19 @@ def _quadrature(
     visibility_samples: int,
     chunk_points: int,
     progress: bool,
+    output: tuple[str, int] = ("dense", 8),
 ) -> tuple[Tensor, Tensor, Tensor, dict]:
     sc = scene.to(torch.float64).to("cpu")
-    corners = sc.corners
-    normals = sc.normals
-    cent = sc.centroids
-    areas = sc.areas
-    F = corners.shape[0]
+    F = sc.num_facets
     eps = plane_eps(scene)
     info: dict = {}
 
     t = time.perf_counter()
-    front = facing_matrix(corners, normals, cent, eps)
-    mutual = front & front.T
-    iu, ju = torch.nonzero(torch.triu(mutual, diagonal=1), as_tuple=True)
+    iu, ju = _facing_pairs(sc, eps, output)
     info["pairs"] = int(iu.numel())
     info["seconds_cull"] = time.perf_counter() - t
     if iu.numel() == 0:
+        _warn_if_wrong_side(sc, eps)
         empty = torch.zeros(0, dtype=torch.int64)
         info.update(points=0, rays=0, occluded_pairs=0, occluded_facets=torch.zeros(F, dtype=torch.bool))
         return empty, empty, torch.zeros(0, dtype=torch.float64), info
@@ -180,11 +234,66 @@ def _quadrature(
     approx[tgt[need]] = True
     info.update(occluded_pairs=int(need.sum()), rays=vis.rays if vis else 0, occluded_facets=approx)
 
+    areas = sc.areas
     rows = torch.cat([dom, tgt])
     cols = torch.cat([tgt, dom])
     vals = torch.cat([value / areas[dom], value / areas[tgt]])
     keep = vals > 0
     return rows[keep], cols[keep], vals[keep], info
+
+
+def _facing_pairs(sc: Scene, eps: float, output: tuple[str, int]) -> tuple[Tensor, Tensor]:
+    """Pairs ``i < j`` of mutually facing facets (float64 CPU scene); checks the memory before each big step.
+
+    ``output``: the layout of the result (``"auto"`` is dense when more than ``_SPARSE_DENSITY`` is nonzero) and
+    the bytes per entry of its dtype.
+    """
+    F = sc.num_facets
+    layout, itemsize = output
+    dense = layout == "dense"
+    remedy = ("use ti.hierarchical_form_factors(scene) (no [F, F] matrix: memory grows like F·leaf_size), or a "
+              "coarser mesh")
+    what = f"form_factors on {F} facets"
+    check_memory(dense_kernel_bytes(F, None, dense, itemsize), what + " ([F, F] facing matrices)", remedy)
+    front = facing_matrix(sc.corners, sc.normals, sc.centroids, eps)
+    upper = torch.triu(front & front.T, diagonal=1)
+    del front
+    pairs = int(upper.sum())
+    dense = dense or (layout == "auto" and 2 * pairs > _SPARSE_DENSITY * F * F)
+    check_memory(dense_kernel_bytes(F, pairs, dense, itemsize), what + f" ({pairs} facet pairs)", remedy)
+    iu, ju = torch.nonzero(upper, as_tuple=True)
+    return iu, ju
+
+
+def _warn_if_wrong_side(sc: Scene, eps: float) -> None:
+    """Warn when no pair exchanges light but the facets' back sides would (normals out of a concave mesh)."""
+    if sc.num_facets < 2:
+        return
+    back = facing_matrix(sc.corners, -sc.normals, sc.centroids, eps)
+    if bool((back & back.T).fill_diagonal_(False).any()):
+        warnings.warn(
+            f"no pair of the scene's {sc.num_facets} facets can exchange light: every facet faces away from the "
+            "others, but their back sides face each other (normals pointing out of a concave mesh, e.g. trimesh's "
+            "outward normals of a bowl or a room). The form factors are all zero. If the inside should reflect, "
+            "build the scene with Scene.from_trimesh(mesh, side='inside') (or reverse the facets' corner order)",
+            GeometryWarning,
+            stacklevel=5,
+        )
+
+
+@dataclass
+class PairClasses:
+    """How each pair ``(dom, tgt)`` is integrated: shared edge / vertex (graded rules), straddling (clipped),
+    or regular (Gauss order from the distance / size ratio). All fields ``[P]``."""
+
+    order: Tensor  # Gauss order per direction for a regular pair
+    rho: Tensor  # centroid distance / larger diameter
+    has_edge: Tensor  # the pair shares an edge (edge-graded rule)
+    has_vertex: Tensor  # the pair shares a vertex only (vertex-graded rule)
+    shift: Tensor  # rotation of the domain's corners that puts the shared edge / vertex first
+    clip_t: Tensor  # a target corner lies behind the domain's plane: clip the target
+    clip_d: Tensor  # a domain corner lies behind the target's plane: integrate over the clipped domain
+    n_adj: int  # Gauss order of the graded rules
 
 
 def pair_values(
@@ -207,9 +316,9 @@ def pair_values(
     integration domain), ``value = A_dom F_dom,tgt`` (clamped at 0), ``need`` the pairs whose visibility came
     from rays, and the visibility object (``vis`` when given, reused across calls). Adds ``points``,
     ``seconds_quadrature``, ``seconds_visibility``, ``pairs_adjacent`` and ``pairs_clipped`` to ``info``
-    (accumulating over calls).
+    (accumulating over calls). ``tol`` is the quadrature tolerance (``quadrature_tol`` of :func:`form_factors`).
     """
-    corners, normals, cent, areas, diam = sc.corners, sc.normals, sc.centroids, sc.areas, sc.diameters
+    areas = sc.areas
     # integrate over the smaller facet of each pair (the "domain"), contour over the other ("target")
     swap = areas[iu] > areas[ju]
     dom = torch.where(swap, ju, iu)
@@ -217,7 +326,52 @@ def pair_values(
 
     t = time.perf_counter()
     value = torch.empty(dom.numel(), dtype=torch.float64)  # A_dom F_dom,tgt
-    # classify: shared edge / shared vertex / straddling / regular
+    cls = classify_pairs(sc, dom, tgt, tol, adjacent_order, eps)
+    groups, clipped = rule_groups(cls)
+
+    # occlusion: pairs that a third facet could block get a visible fraction at every quadrature point
+    t_vis = time.perf_counter()
+    if occlusion is False:
+        need = torch.zeros(dom.numel(), dtype=torch.bool)
+    elif occlusion is True:
+        need = torch.ones(dom.numel(), dtype=torch.bool)
+    else:
+        need = blocker_candidates(sc, dom, tgt, eps)
+    if vis is None and bool(need.any()):
+        vis = PointVisibility(sc, visibility_samples)
+    vis_before = vis.seconds if vis is not None else 0.0
+    seconds_vis = time.perf_counter() - t_vis
+
+    def visible(p: Tensor, x: Tensor) -> Tensor:
+        """Per-point visible fractions ``[p, Q]`` (1 where no ray is needed)."""
+        out = torch.ones(x.shape[:2], dtype=torch.float64)
+        rows = torch.nonzero(need[p]).reshape(-1)
+        if vis is not None and rows.numel():
+            out[rows] = vis(x[rows], dom[p[rows]], tgt[p[rows]])
+        return out
+
+    bar = tqdm(total=int(dom.numel()), desc="form factors", unit="pair", leave=False,
+               disable=None if progress else True, mininterval=1.0)
+    points = integrate_groups(sc, dom, tgt, cls, groups, visible, value, chunk_points, eps, bar)
+    points += integrate_clipped(sc, dom, tgt, cls, clipped, visible, value, chunk_points, eps, bar)
+    bar.close()
+    value = value.clamp_min(0.0)
+    seconds_vis += (vis.seconds if vis is not None else 0.0) - vis_before
+    for key, add in (
+        ("points", int(points)),
+        ("seconds_quadrature", time.perf_counter() - t - seconds_vis),
+        ("seconds_visibility", seconds_vis),
+        ("pairs_adjacent", int((cls.has_edge | cls.has_vertex).sum())),
+        ("pairs_clipped", int((cls.clip_t | cls.clip_d).sum())),
+    ):
+        info[key] = info.get(key, 0) + add
+    return dom, tgt, value, need, vis
+
+
+def classify_pairs(sc: Scene, dom: Tensor, tgt: Tensor, tol: float, adjacent_order: int | None,
+                   eps: float) -> PairClasses:
+    """Classify pairs ``(dom, tgt)``: shared edge / shared vertex / straddling / regular, and the Gauss orders."""
+    corners, normals, cent, diam = sc.corners, sc.normals, sc.centroids, sc.diameters
     P = dom.numel()
     radius = (corners - cent[:, None, :]).norm(dim=-1).max(dim=1).values
     dist = (cent[dom] - cent[tgt]).norm(dim=-1)
@@ -247,43 +401,31 @@ def pair_values(
         a, b = dom[s : s + (1 << 20)], tgt[s : s + (1 << 20)]
         clip_t[s : s + (1 << 20)] = (signed_distances(corners[b], cent[a], normals[a]) < -eps).any(1)
         clip_d[s : s + (1 << 20)] = (signed_distances(corners[a], cent[b], normals[b]) < -eps).any(1)
+    return PairClasses(order, rho, has_edge, has_vertex, shift, clip_t, clip_d, n_adj)
 
-    points = 0
+
+def rule_groups(cls: PairClasses) -> tuple[list[tuple[str, Tensor, int]], Tensor]:
+    """``(groups, clipped)``: ``(rule kind, pair indices, order)`` for the unclipped pairs, and the clipped pairs."""
     groups: list[tuple[str, Tensor, int]] = []
-    special = clip_d
-    for kind, mask in (("edge", has_edge & ~special), ("vertex", has_vertex & ~special)):
+    special = cls.clip_d
+    for kind, mask in (("edge", cls.has_edge & ~special), ("vertex", cls.has_vertex & ~special)):
         sel = torch.nonzero(mask).reshape(-1)
         if sel.numel():
-            groups.append((kind, sel, n_adj))
-    regular = ~has_edge & ~has_vertex & ~special
-    for n in torch.unique(order[regular]).tolist():
-        sel = torch.nonzero(regular & (order == n)).reshape(-1)
+            groups.append((kind, sel, cls.n_adj))
+    regular = ~cls.has_edge & ~cls.has_vertex & ~special
+    for n in torch.unique(cls.order[regular]).tolist():
+        sel = torch.nonzero(regular & (cls.order == n)).reshape(-1)
         groups.append(("plain", sel, int(n)))
-    clipped = torch.nonzero(special).reshape(-1)
+    return groups, torch.nonzero(special).reshape(-1)
 
-    # occlusion: pairs that a third facet could block get a visible fraction at every quadrature point
-    t_vis = time.perf_counter()
-    if occlusion is False:
-        need = torch.zeros(dom.numel(), dtype=torch.bool)
-    elif occlusion is True:
-        need = torch.ones(dom.numel(), dtype=torch.bool)
-    else:
-        need = blocker_candidates(sc, dom, tgt, eps)
-    if vis is None and bool(need.any()):
-        vis = PointVisibility(sc, visibility_samples)
-    vis_before = vis.seconds if vis is not None else 0.0
-    seconds_vis = time.perf_counter() - t_vis
 
-    def visible(p: Tensor, x: Tensor) -> Tensor:
-        """Per-point visible fractions ``[p, Q]`` (1 where no ray is needed)."""
-        out = torch.ones(x.shape[:2], dtype=torch.float64)
-        rows = torch.nonzero(need[p]).reshape(-1)
-        if vis is not None and rows.numel():
-            out[rows] = vis(x[rows], dom[p[rows]], tgt[p[rows]])
-        return out
-
-    bar = tqdm(total=int(dom.numel()), desc="form factors", unit="pair", leave=False,
-               disable=None if progress else True, mininterval=1.0)
+def integrate_groups(sc: Scene, dom: Tensor, tgt: Tensor, cls: PairClasses, groups: list[tuple[str, Tensor, int]],
+                     visible: Callable[[Tensor, Tensor], Tensor], value: Tensor, chunk_points: int, eps: float,
+                     bar: Any) -> int:
+    """Integrate the pairs of each rule group (domain unclipped) into ``value``; returns the quadrature points."""
+    corners, normals, cent = sc.corners, sc.normals, sc.centroids
+    clip_t, shift = cls.clip_t, cls.shift
+    points = 0
     for kind, sel, n in groups:
         u, v, w = quadrature_rule(kind, n, torch.float64, torch.device("cpu"))
         Q = u.numel()
@@ -300,47 +442,41 @@ def pair_values(
             value[p] = (f * jac * w).sum(1)
             points += p.numel() * Q
             bar.update(p.numel())
-    if clipped.numel():
-        # the domain crosses the target's plane: integrate over the part in front of it. The clipped polygon
-        # (at most five corners) is rotated so that its edge on the target's plane, where the integrand is
-        # singular when the two touch, comes first; the fan triangle on that edge gets the edge-graded rule,
-        # the others (which touch it at one corner) the vertex-graded rule.
-        near = rho[clipped] < 1.0
-        n_clip = torch.where(near, torch.full_like(order[clipped], n_adj), order[clipped].clamp_min(4))
-        for n in torch.unique(n_clip).tolist():
-            rules = [quadrature_rule(kind, int(n), torch.float64, torch.device("cpu")) for kind in ("edge", "vertex")]
-            sub = clipped[n_clip == n]
-            per = max(1, chunk_points // (rules[0][0].numel() * 5))
-            for s in range(0, sub.numel(), per):
-                p = sub[s : s + per]
-                poly = clip_polygons(corners[dom[p]], cent[tgt[p]], normals[tgt[p]], eps)[:, :5]
-                poly = rotate_to_plane_edge(poly, cent[tgt[p]], normals[tgt[p]], eps)
-                target = clip_polygons(corners[tgt[p]], cent[dom[p]], normals[dom[p]], eps)[:, :5]
-                total = torch.zeros(p.numel(), dtype=torch.float64)
-                for k in range(1, 4):
-                    u, v, w = rules[0] if k == 1 else rules[1]
-                    tri = torch.stack([poly[:, 0], poly[:, k], poly[:, k + 1], poly[:, k + 1]], dim=1)
-                    x, jac = bilinear(tri, u, v)
-                    f = point_polygon_factor(x, normals[dom[p]], target) * visible(p, x)
-                    total += (f * jac * w).sum(1)
-                    points += p.numel() * u.numel()
-                value[p] = total
-                bar.update(p.numel())
-    bar.close()
-    value = value.clamp_min(0.0)
-    seconds_vis += (vis.seconds if vis is not None else 0.0) - vis_before
-    for key, add in (
-        ("points", int(points)),
-        ("seconds_quadrature", time.perf_counter() - t - seconds_vis),
-        ("seconds_visibility", seconds_vis),
-        ("pairs_adjacent", int((has_edge | has_vertex).sum())),
-        ("pairs_clipped", int((clip_t | clip_d).sum())),
-    ):
-        info[key] = info.get(key, 0) + add
-    return dom, tgt, value, need, vis
+    return points
 
 
-# ------------------------------------------------------------------------------------- visibility
+def integrate_clipped(sc: Scene, dom: Tensor, tgt: Tensor, cls: PairClasses, clipped: Tensor,
+                      visible: Callable[[Tensor, Tensor], Tensor], value: Tensor, chunk_points: int, eps: float,
+                      bar: Any) -> int:
+    """Integrate the pairs whose domain crosses the target's plane into ``value``; returns the quadrature points.
 
-
-# ------------------------------------------------------------------------------------ Monte Carlo
+    The clipped polygon (at most five corners) is rotated so that its edge on the target's plane, where the
+    integrand is singular when the two touch, comes first; the fan triangle on that edge gets the edge-graded
+    rule, the others (which touch it at one corner) the vertex-graded rule.
+    """
+    corners, normals, cent = sc.corners, sc.normals, sc.centroids
+    points = 0
+    if not clipped.numel():
+        return points
+    near = cls.rho[clipped] < 1.0
+    n_clip = torch.where(near, torch.full_like(cls.order[clipped], cls.n_adj), cls.order[clipped].clamp_min(4))
+    for n in torch.unique(n_clip).tolist():
+        rules = [quadrature_rule(kind, int(n), torch.float64, torch.device("cpu")) for kind in ("edge", "vertex")]
+        sub = clipped[n_clip == n]
+        per = max(1, chunk_points // (rules[0][0].numel() * 5))
+        for s in range(0, sub.numel(), per):
+            p = sub[s : s + per]
+            poly = clip_polygons(corners[dom[p]], cent[tgt[p]], normals[tgt[p]], eps)[:, :5]
+            poly = rotate_to_plane_edge(poly, cent[tgt[p]], normals[tgt[p]], eps)
+            target = clip_polygons(corners[tgt[p]], cent[dom[p]], normals[dom[p]], eps)[:, :5]
+            total = torch.zeros(p.numel(), dtype=torch.float64)
+            for k in range(1, 4):
+                u, v, w = rules[0] if k == 1 else rules[1]
+                tri = torch.stack([poly[:, 0], poly[:, k], poly[:, k + 1], poly[:, k + 1]], dim=1)
+                x, jac = bilinear(tri, u, v)
+                f = point_polygon_factor(x, normals[dom[p]], target) * visible(p, x)
+                total += (f * jac * w).sum(1)
+                points += p.numel() * u.numel()
+            value[p] = total
+            bar.update(p.numel())
+    return points

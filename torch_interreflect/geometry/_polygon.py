@@ -18,6 +18,7 @@ __all__ = [
     "clip_polygons",
     "compact_polygons",
     "facet_samples",
+    "facing_any",
     "facing_matrix",
     "facing_others",
     "plane_eps",
@@ -120,6 +121,32 @@ def facing_others(scene: Scene) -> Tensor:
     sc = scene.to(torch.float64).to("cpu")
     front = facing_matrix(sc.corners, sc.normals, sc.centroids, plane_eps(scene))
     return front.fill_diagonal_(False)
+
+
+def facing_any(scene: Scene, *, one_way: bool = False, chunk: int | None = None) -> Tensor:
+    """Per facet ``[F]`` bool: does some other facet lie (partly) in front of it, without an ``[F, F]`` matrix.
+
+    ``facing_others(scene).any(1)``, or with ``one_way=True`` ``(front & ~front.T).any(1)`` (some facet in front of
+    i that i is not in front of: i sees its back), computed in row blocks: memory ``O(chunk · F)``.
+    """
+    sc = scene.to(torch.float64).to("cpu")
+    corners, normals, cent = sc.corners, sc.normals, sc.centroids
+    eps = plane_eps(scene)
+    F = corners.shape[0]
+    chunk = chunk or max(1, (1 << 22) // (4 * F))
+    out = torch.zeros(F, dtype=torch.bool)
+    offs = (normals * cent).sum(-1)
+    for s in range(0, F, chunk):
+        rows = torch.arange(s, min(s + chunk, F))
+        n, c = normals[rows], cent[rows]
+        front = (torch.einsum("bx,fkx->bfk", n, corners) - (n * c).sum(-1)[:, None, None] > eps).any(-1)  # [b, F]
+        front[torch.arange(rows.numel()), rows] = False
+        if one_way:
+            # front.T rows: some corner of facet i (in the block) in front of facet j's plane
+            back = (torch.einsum("fx,bkx->bfk", normals, corners[rows]) - offs[None, :, None] > eps).any(-1)
+            front &= ~back
+        out[rows] = front.any(1)
+    return out
 
 
 def plane_eps(scene: Scene) -> float:

@@ -9,21 +9,17 @@ side; the normal follows the right-hand rule.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 import torch
 from torch import Tensor
 
-from ..errors import GeometryError, ShapeError
+from ..errors import ShapeError
+from .checks import check_facets
+from .duplicates import resolve_duplicates
 
 __all__ = ["Scene", "area_average"]
-
-#: Relative tolerance for planarity of quads (distance of the 4th vertex to the plane / facet diameter).
-PLANARITY_RTOL = 1e-5
-#: Facets with area below ``AREA_RTOL * scene_diameter**2`` are degenerate.
-AREA_RTOL = 1e-12
-
 
 def _as_tensor(x: Any, name: str, dtype: torch.dtype | None = None) -> Tensor:
     if isinstance(x, Tensor):
@@ -52,6 +48,11 @@ class Scene:
             ``[F, 3]`` (triangles) or ``[F, 4]`` (planar convex quads).
         material: Optional material index of each facet. Shape ``[F]``.
         material_names: Optional names of the materials, indexed by ``material``.
+        duplicates: What to do with coincident or overlapping coplanar facets facing the same way (the same
+            surface counted twice, which makes form-factor rows sum above 1): ``"error"`` (default) raises
+            :class:`~torch_interreflect.errors.GeometryError` naming the pairs, ``"drop"`` keeps the first facet
+            of each overlapping group (by index; ``num_facets`` shrinks), ``"keep"`` skips the check.
+            Back-to-back facets (opposite normals) and facets touching along an edge are not duplicates.
 
     Shape:
         - corners: ``[F, 4, 3]`` (triangles repeat their last vertex)
@@ -72,6 +73,7 @@ class Scene:
         *,
         material: Tensor | np.ndarray | Sequence | None = None,
         material_names: Sequence[str] | None = None,
+        duplicates: Literal["error", "drop", "keep"] = "error",
     ) -> None:
         v = _as_tensor(vertices, "vertices")
         f = torch.as_tensor(np.asarray(faces) if not isinstance(faces, Tensor) else faces)
@@ -87,7 +89,7 @@ class Scene:
                 f"faces index vertices 0..{v.shape[0] - 1}; got indices in [{int(f.min())}, {int(f.max())}]"
             )
         corners = v[f]
-        self._init_from_corners(corners, material, material_names)
+        self._init_from_corners(corners, material, material_names, duplicates=duplicates)
 
     # ------------------------------------------------------------------ construction
     @classmethod
@@ -97,6 +99,7 @@ class Scene:
         *,
         material: Tensor | np.ndarray | Sequence | None = None,
         material_names: Sequence[str] | None = None,
+        duplicates: Literal["error", "drop", "keep"] = "error",
     ) -> Scene:
         """Build a scene where every polygon is one facet.
 
@@ -105,9 +108,12 @@ class Scene:
                 ``[F, 3, 3]`` (triangles) or ``[F, 4, 3]`` (planar convex quads).
             material: Optional material index per facet, shape ``[F]``.
             material_names: Optional names of the materials.
+            duplicates: Coincident / overlapping coplanar facets: ``"error"``, ``"drop"`` or ``"keep"`` (see
+                :class:`Scene`).
 
         Raises:
-            GeometryError: a facet is non-finite, degenerate, non-planar or non-convex (the message names it).
+            GeometryError: a facet is non-finite, degenerate, non-planar or non-convex, or (``duplicates="error"``)
+                two facets overlap (the message names them).
             ShapeError: ``corners`` does not have shape ``[F, 3, 3]`` or ``[F, 4, 3]``.
 
         Example:
@@ -120,12 +126,27 @@ class Scene:
         if c.ndim != 3 or c.shape[1] not in (3, 4) or c.shape[2] != 3:
             raise ShapeError(f"corners must have shape [F, 3, 3] or [F, 4, 3]; got {list(c.shape)}")
         self = cls.__new__(cls)
-        self._init_from_corners(c, material, material_names)
+        self._init_from_corners(c, material, material_names, duplicates=duplicates)
         return self
 
     @classmethod
-    def from_trimesh(cls, mesh: Any, *, dtype: torch.dtype | None = None) -> Scene:
+    def from_trimesh(
+        cls,
+        mesh: Any,
+        *,
+        dtype: torch.dtype | None = None,
+        side: Literal["outside", "inside", "both"] = "outside",
+        duplicates: Literal["error", "drop", "keep"] = "error",
+    ) -> Scene:
         """Build a scene from a :class:`trimesh.Trimesh`, one facet per triangle.
+
+        **Which side reflects.** A facet reflects (and receives light) on the side its normal points to. trimesh
+        winds faces so that normals point *out* of a closed mesh (and out of the convex side of a bowl or cup cut
+        from a sphere), so with the default ``side="outside"`` the outer surface reflects, as before this option
+        existed: a bowl's concave inside then exchanges no light and its form factors are all zero (``form_factors``
+        warns). Pass ``side="inside"`` for the interior of a room, a box, a cup or a bowl (every face is wound the
+        other way), or ``side="both"`` for a thin shell that reflects on both sides (each triangle becomes two
+        back-to-back facets: facets ``0..T-1`` face outside, ``T..2T-1`` inside, with the same materials).
 
         A per-facet material index is kept when the mesh has face colours (one material per distinct colour)
         or a :class:`trimesh.Scene` was concatenated from several meshes (``mesh.metadata['material']``).
@@ -133,14 +154,22 @@ class Scene:
         Args:
             mesh: A ``trimesh.Trimesh`` (or a ``trimesh.Scene``, which is concatenated).
             dtype: Floating dtype of the result (default: torch's default dtype).
+            side: ``"outside"`` (default: trimesh's normals), ``"inside"`` (flipped) or ``"both"``.
+            duplicates: Coincident / overlapping coplanar facets: ``"error"``, ``"drop"`` or ``"keep"`` (see
+                :class:`Scene`).
 
         Example:
             >>> import trimesh, torch_interreflect as ti
             >>> ti.Scene.from_trimesh(trimesh.creation.box()).num_facets
             12
+            >>> inside = ti.Scene.from_trimesh(trimesh.creation.box(), side="inside")
+            >>> float(ti.form_factors(inside).row_sums().min()) > 0.999  # a closed room
+            True
         """
         import trimesh
 
+        if side not in ("outside", "inside", "both"):
+            raise ValueError(f"side must be 'outside', 'inside' or 'both'; got {side!r}")
         material = None
         names: list[str] | None = None
         if isinstance(mesh, trimesh.Scene):
@@ -159,7 +188,12 @@ class Scene:
                 names = ["#" + "".join(f"{int(c):02x}" for c in u[:3]) for u in uniq]
         v = torch.as_tensor(np.asarray(mesh.vertices), dtype=dtype or torch.get_default_dtype())
         f = torch.as_tensor(np.asarray(mesh.faces, dtype=np.int64))
-        return cls(v, f, material=material, material_names=names)
+        if side != "outside":
+            flipped = f.flip(1)
+            f = flipped if side == "inside" else torch.cat([f, flipped])
+            if side == "both" and material is not None:
+                material = np.concatenate([np.asarray(material), np.asarray(material)])
+        return cls(v, f, material=material, material_names=names, duplicates=duplicates)
 
     def _init_from_corners(
         self,
@@ -167,6 +201,7 @@ class Scene:
         material: Tensor | np.ndarray | Sequence | None,
         material_names: Sequence[str] | None,
         validate: bool = True,
+        duplicates: str = "error",
     ) -> None:
         if corners.shape[1] == 3:
             corners = torch.cat([corners, corners[:, 2:3]], dim=1)
@@ -186,6 +221,16 @@ class Scene:
         self.material_names = list(material_names) if material_names is not None else None
         if validate:
             self._validate()
+            self._drop_duplicates(duplicates)
+
+    def _drop_duplicates(self, mode: str) -> None:
+        """Apply ``duplicates=`` (see :class:`Scene`) to the validated facets."""
+        cd = self._corners.detach().to("cpu", torch.float64)
+        keep = resolve_duplicates(cd.numpy(), _normals(cd).numpy(), mode)
+        if keep is not None:
+            k = torch.as_tensor(keep, device=self._corners.device)
+            self._corners, self._is_triangle = self._corners[k].contiguous(), self._is_triangle[k]
+            self._material = self._material[k] if self._material is not None else None
 
     @classmethod
     def _from_parts(
@@ -200,49 +245,7 @@ class Scene:
         return self
 
     def _validate(self) -> None:
-        c = self._corners
-        if c.shape[0] == 0:
-            raise GeometryError("a scene needs at least one facet; got 0")
-        finite = torch.isfinite(c).reshape(c.shape[0], -1).all(dim=1)
-        if not bool(finite.all()):
-            bad = int(torch.nonzero(~finite)[0])
-            raise GeometryError(f"facet {bad} has non-finite corners: {c[bad].tolist()}")
-        cd = c.double()
-        diam = float((cd.reshape(-1, 3).max(0).values - cd.reshape(-1, 3).min(0).values).norm())
-        # fan area (sum of the two triangles' areas): a bow-tie quad is caught later, as non-convex
-        a, b, cc, d = cd.unbind(1)
-        area = 0.5 * torch.linalg.cross(b - a, cc - a, dim=-1).norm(dim=-1)
-        area = area + 0.5 * torch.linalg.cross(cc - a, d - a, dim=-1).norm(dim=-1)
-        tiny = area <= AREA_RTOL * max(diam, 1e-300) ** 2
-        if bool(tiny.any()):
-            bad = int(torch.nonzero(tiny)[0])
-            raise GeometryError(
-                f"facet {bad} is degenerate: area {float(area[bad]):.3g} m² (corners {cd[bad].tolist()})"
-            )
-        quad = ~self._is_triangle
-        if bool(quad.any()):
-            n = _normals(cd)
-            size = (cd - cd.mean(1, keepdim=True)).norm(dim=-1).max(dim=1).values
-            # planarity: every corner within PLANARITY_RTOL * size of the mean plane
-            dev = ((cd - cd.mean(1, keepdim=True)) * n[:, None, :]).sum(-1).abs().max(dim=1).values
-            nonplanar = quad & (dev > PLANARITY_RTOL * size)
-            if bool(nonplanar.any()):
-                bad = int(torch.nonzero(nonplanar)[0])
-                raise GeometryError(
-                    f"facet {bad} is not planar: a corner lies {float(dev[bad]):.3g} m off its plane "
-                    f"(tolerance {PLANARITY_RTOL:g} × size {float(size[bad]):.3g} m)"
-                )
-            # convexity: the turn at every corner has the orientation of the facet normal
-            e = torch.roll(cd, -1, dims=1) - cd
-            turn = torch.linalg.cross(e, torch.roll(e, -1, dims=1), dim=-1)
-            s = (turn * n[:, None, :]).sum(-1)
-            nonconvex = quad & (s <= 1e-12 * size[:, None] ** 2).any(dim=1)
-            if bool(nonconvex.any()):
-                bad = int(torch.nonzero(nonconvex)[0])
-                raise GeometryError(
-                    f"facet {bad} is not a convex quad with corners in order (turn orientations "
-                    f"{[round(float(x), 6) for x in s[bad]]}); corners {cd[bad].tolist()}"
-                )
+        check_facets(self._corners, self._is_triangle)
 
     # ------------------------------------------------------------------ properties
     @property

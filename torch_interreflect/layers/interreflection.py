@@ -143,7 +143,7 @@ class Interreflection(nn.Module):
             self.register_buffer("light_factor", refined.light_factor.detach())
             self.register_buffer("leaf_user", refined.leaf_user.detach().to(ff.device))
         else:
-            self.register_buffer("light_factor", light_geometry(light, ff, scene, shadows=shadows))
+            self.register_buffer("light_factor", light_geometry(scene, ff, light, shadows=shadows))
             self.leaf_user = None
         self._num_user = n_facets
         mat = scene.material if scene is not None and scene.material is not None else torch.zeros(n_facets)

@@ -100,7 +100,7 @@ def warn_if_inaccurate(
         f"{rmax:.9g} and form-factor rows summing to at most {rho:.9g}, errors are amplified by "
         f"1/(1 - r_max * rho) = {amp}, and the form factors' closure error {closure_error:.3g} (how far rows of a "
         f"closed scene miss 1) alone contributes {closure_error * rmax / gap if gap > 0 else math.inf:.3g}. "
-        "Use reflectance further from 1, more accurate form factors (form_factors(tol=...)), or float64."
+        "Use reflectance further from 1, more accurate form factors (form_factors(quadrature_tol=...)), or float64."
     )
     w.bound = bound  # type: ignore[attr-defined]
     warnings.warn(w, stacklevel=stacklevel + 1)
