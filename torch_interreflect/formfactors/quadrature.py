@@ -35,6 +35,7 @@ from ..geometry._polygon import (
 )
 from ..geometry.scene import Scene
 from .contour import point_polygon_factor
+from .fused import Backend, fan_sums, group_sums, resolve_backend
 from .montecarlo import monte_carlo
 from .operator import FormFactors
 from .rules import default_adjacent_order, order_for, quadrature_rule
@@ -70,6 +71,7 @@ def form_factors(
     generator: torch.Generator | None = None,
     chunk_points: int = 1 << 18,
     progress: bool | None = None,
+    backend: Backend = "auto",
 ) -> FormFactors:
     """Form factors ``F_ij`` of a scene: the fraction of light leaving facet i that arrives at facet j.
 
@@ -91,6 +93,9 @@ def form_factors(
         chunk_points: Quadrature points × polygon corners evaluated at once; the default keeps every
             temporary (a few MB) in cache, which is several times faster than larger blocks.
         progress: Show a progress bar (default: only for large scenes).
+        backend: ``"fused"`` evaluates the quadrature in one compiled multi-core loop per chunk of pairs,
+            ``"torch"`` with torch tensors (keeps autograd to ``scene.vertices``), ``"auto"`` (default) fused
+            unless the scene's vertices require grad (:mod:`~torch_interreflect.formfactors.fused`).
 
     Returns:
         :class:`~torch_interreflect.FormFactors` in the scene's dtype and device, with ``info``
@@ -123,7 +128,7 @@ def form_factors(
         rows, cols, vals, info = monte_carlo(scene, samples, generator)
     else:
         rows, cols, vals, info = _quadrature(
-            scene, occlusion, tol, adjacent_order, visibility_samples, chunk_points, progress
+            scene, occlusion, tol, adjacent_order, visibility_samples, chunk_points, progress, backend
         )
     scene.areas.detach().to(torch.float64)
     out_dtype, dev = scene.dtype, scene.device
@@ -149,6 +154,7 @@ def _quadrature(
     visibility_samples: int,
     chunk_points: int,
     progress: bool,
+    backend: Backend = "auto",
 ) -> tuple[Tensor, Tensor, Tensor, dict]:
     sc = scene.to(torch.float64).to("cpu")
     corners = sc.corners
@@ -171,7 +177,8 @@ def _quadrature(
         return empty, empty, torch.zeros(0, dtype=torch.float64), info
 
     dom, tgt, value, need, vis = pair_values(
-        sc, iu, ju, occlusion, tol, adjacent_order, visibility_samples, chunk_points, progress, info, eps
+        sc, iu, ju, occlusion, tol, adjacent_order, visibility_samples, chunk_points, progress, info, eps,
+        backend=backend,
     )
 
     # facets with a pair whose visibility was estimated by rays: their row sums are estimates, not exact
@@ -200,6 +207,7 @@ def pair_values(
     info: dict,
     eps: float,
     vis: PointVisibility | None = None,
+    backend: Backend = "auto",
 ) -> tuple[Tensor, Tensor, Tensor, Tensor, PointVisibility | None]:
     """``A_i F_ij`` for given pairs ``(iu, ju)`` of mutually facing facets of ``sc`` (float64, CPU).
 
@@ -207,7 +215,7 @@ def pair_values(
     integration domain), ``value = A_dom F_dom,tgt`` (clamped at 0), ``need`` the pairs whose visibility came
     from rays, and the visibility object (``vis`` when given, reused across calls). Adds ``points``,
     ``seconds_quadrature``, ``seconds_visibility``, ``pairs_adjacent`` and ``pairs_clipped`` to ``info``
-    (accumulating over calls).
+    (accumulating over calls). ``backend``: see :func:`form_factors`.
     """
     corners, normals, cent, areas, diam = sc.corners, sc.normals, sc.centroids, sc.areas, sc.diameters
     # integrate over the smaller facet of each pair (the "domain"), contour over the other ("target")
@@ -284,9 +292,17 @@ def pair_values(
 
     bar = tqdm(total=int(dom.numel()), desc="form factors", unit="pair", leave=False,
                disable=None if progress else True, mininterval=1.0)
+    fused = resolve_backend(backend, corners, normals, cent)
     for kind, sel, n in groups:
         u, v, w = quadrature_rule(kind, n, torch.float64, torch.device("cpu"))
         Q = u.numel()
+        if fused:  # one compiled loop over the group's pairs (same numbers as the torch loop below)
+            d, t = dom[sel], tgt[sel]
+            value[sel] = group_sums(corners, normals, cent, d, t, shift[sel], clip_t[sel], (u, v, w), eps,
+                                    need[sel], vis, backend)
+            points += sel.numel() * Q
+            bar.update(sel.numel())
+            continue
         per = max(1, chunk_points // (Q * 5))
         for s in range(0, sel.numel(), per):
             p = sel[s : s + per]
@@ -316,6 +332,11 @@ def pair_values(
                 poly = clip_polygons(corners[dom[p]], cent[tgt[p]], normals[tgt[p]], eps)[:, :5]
                 poly = rotate_to_plane_edge(poly, cent[tgt[p]], normals[tgt[p]], eps)
                 target = clip_polygons(corners[tgt[p]], cent[dom[p]], normals[dom[p]], eps)[:, :5]
+                if fused:  # the three fan triangles in compiled loops
+                    value[p] = fan_sums(poly, target, normals[dom[p]], rules, dom[p], tgt[p], need[p], vis, backend)
+                    points += p.numel() * (rules[0][0].numel() + 2 * rules[1][0].numel())
+                    bar.update(p.numel())
+                    continue
                 total = torch.zeros(p.numel(), dtype=torch.float64)
                 for k in range(1, 4):
                     u, v, w = rules[0] if k == 1 else rules[1]
