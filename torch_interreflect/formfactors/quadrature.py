@@ -297,8 +297,7 @@ def pair_values(
         u, v, w = quadrature_rule(kind, n, torch.float64, torch.device("cpu"))
         Q = u.numel()
         if fused:  # one compiled loop over the group's pairs (same numbers as the torch loop below)
-            d, t = dom[sel], tgt[sel]
-            value[sel] = group_sums(corners, normals, cent, d, t, shift[sel], clip_t[sel], (u, v, w), eps,
+            value[sel] = group_sums(corners, normals, cent, dom[sel], tgt[sel], shift[sel], clip_t[sel], (u, v, w), eps,
                                     need[sel], vis, backend)
             points += sel.numel() * Q
             bar.update(sel.numel())
