@@ -120,6 +120,8 @@ def form_factors(
         raise ValueRangeError(f"tol must lie in (0, 1); got {tol}")
     if layout not in ("auto", "dense", "sparse"):
         raise ValueError(f"layout must be 'auto', 'dense' or 'sparse'; got {layout!r}")
+    if backend not in ("auto", "fused", "torch"):
+        raise ValueError(f"backend must be 'auto', 'fused' or 'torch'; got {backend!r}")
     t0 = time.perf_counter()
     F = scene.num_facets
     if progress is None:
