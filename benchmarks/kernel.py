@@ -161,6 +161,7 @@ def main() -> None:
             res[(backend, threads)] = r
             print(name, backend, threads, json.dumps(r), flush=True)
         rows.append((name, res))
+        write(Path(args.out), rows, floor, all_threads, None, args.quick)  # partial results survive a stop
     gen = (generate(False), generate(True)) if args.generate else None
     write(Path(args.out), rows, floor, all_threads, gen, args.quick)
 
