@@ -7,7 +7,7 @@ STAMP  := $(VENV)/.installed-dev
 OUT    ?= out
 
 .PHONY: install demo train-cc test lint bench bench-install bench-speed bench-solver bench-formfactors \
-	bench-accuracy bench-hierarchical bench-hierarchical-quick bench-images clean
+	bench-accuracy bench-hierarchical bench-hierarchical-quick bench-images bench-kernel clean
 
 $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
@@ -37,6 +37,9 @@ bench-hierarchical: $(STAMP)
 
 bench-hierarchical-quick: $(STAMP)
 	$(BIN)/python -m benchmarks.hierarchical --quick
+
+bench-kernel: $(STAMP)
+	$(BIN)/python -m benchmarks.kernel --generate
 
 bench-solver: $(STAMP)
 	$(BIN)/python -m benchmarks.solver

@@ -18,7 +18,6 @@
 from __future__ import annotations
 
 import time
-import warnings
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, Literal
@@ -28,7 +27,7 @@ from torch import Tensor
 from tqdm.auto import tqdm
 
 from .._deprecation import renamed_keywords
-from ..errors import GeometryError, GeometryWarning, ValueRangeError
+from ..errors import ValueRangeError
 from ..geometry._polygon import (
     bilinear,
     clip_polygons,
@@ -38,7 +37,9 @@ from ..geometry._polygon import (
     signed_distances,
 )
 from ..geometry.scene import Scene
+from .checks import check_row_sums, warn_if_wrong_side
 from .contour import point_polygon_factor
+from .fused import Backend, fan_sums, group_sums, resolve_backend
 from .memory import check_memory, dense_kernel_bytes
 from .montecarlo import monte_carlo
 from .operator import FormFactors
@@ -68,6 +69,7 @@ def form_factors(
     generator: torch.Generator | None = None,
     chunk_points: int = 1 << 18,
     progress: bool | None = None,
+    backend: Backend = "auto",
 ) -> FormFactors:
     """Form factors ``F_ij`` of a scene: the fraction of light leaving facet i that arrives at facet j.
 
@@ -95,6 +97,9 @@ def form_factors(
         chunk_points: Quadrature points × polygon corners evaluated at once; the default keeps every
             temporary (a few MB) in cache, which is several times faster than larger blocks.
         progress: Show a progress bar (default: only for large scenes).
+        backend: ``"fused"`` evaluates the quadrature in one compiled multi-core loop per chunk of pairs,
+            ``"torch"`` with torch tensors (keeps autograd to ``scene.vertices``), ``"auto"`` (default) fused
+            unless the scene's vertices require grad (:mod:`~torch_interreflect.formfactors.fused`).
 
     Returns:
         :class:`~torch_interreflect.FormFactors` in the scene's dtype and device, with ``info``
@@ -118,7 +123,7 @@ def form_factors(
         >>> float(K.row_sums().min()) > 0.999999
         True
     """
-    _check_arguments(scene, method, occlusion, quadrature_tol, layout)
+    _check_arguments(scene, method, occlusion, quadrature_tol, layout, backend)
     t0 = time.perf_counter()
     F = scene.num_facets
     if progress is None:
@@ -131,9 +136,9 @@ def form_factors(
         itemsize = torch.empty(0, dtype=scene.dtype).element_size()
         rows, cols, vals, info = _quadrature(
             scene, occlusion, quadrature_tol, adjacent_order, visibility_samples, chunk_points, progress,
-            output=(layout, itemsize),
+            output=(layout, itemsize), backend=backend,
         )
-    info["max_row_sum"] = _check_row_sums(rows, vals, F, quadrature_tol, method, occlusion, info.get("occluded_facets"))
+    info["max_row_sum"] = check_row_sums(rows, vals, F, quadrature_tol, method, occlusion, info.get("occluded_facets"))
     out_dtype, dev = scene.dtype, scene.device
     if layout == "auto":
         layout = "sparse" if rows.numel() <= _SPARSE_DENSITY * F * F else "dense"
@@ -150,7 +155,9 @@ def form_factors(
     return FormFactors(matrix.to(dev), scene.areas.detach().to(out_dtype), info)
 
 
-def _check_arguments(scene: Scene, method: str, occlusion: Any, quadrature_tol: float, layout: str) -> None:
+def _check_arguments(
+    scene: Scene, method: str, occlusion: Any, quadrature_tol: float, layout: str, backend: str = "auto"
+) -> None:
     if not isinstance(scene, Scene):
         raise TypeError(f"form_factors expects a Scene; got {type(scene).__name__}")
     if method not in ("quadrature", "monte_carlo"):
@@ -161,42 +168,8 @@ def _check_arguments(scene: Scene, method: str, occlusion: Any, quadrature_tol: 
         raise ValueRangeError(f"quadrature_tol must lie in (0, 1); got {quadrature_tol}")
     if layout not in ("auto", "dense", "sparse"):
         raise ValueError(f"layout must be 'auto', 'dense' or 'sparse'; got {layout!r}")
-
-
-#: A row may exceed 1 by this many times ``quadrature_tol`` (the quadrature's error on a closed row: measured
-#: below 1e-8 at the default 1e-6).
-ROW_SUM_SLACK = 10.0
-#: A row with ray-cast visibility may exceed 1 by this much (estimated visibility: up to 0.84 % measured on the
-#: Cornell box and the room at the default ``visibility_samples``; duplicated surfaces give 40-60 %).
-OCCLUDED_ROW_SLACK = 0.05
-
-
-def _check_row_sums(
-    rows: Tensor, vals: Tensor, F: int, quadrature_tol: float, method: str, occlusion: Any, occluded: Any
-) -> float:
-    """The largest row sum of ``F`` (float64); ``GeometryError`` when a row exceeds 1 beyond the kernel's tolerance.
-
-    Not checked for ``method="monte_carlo"`` (a row counts first hits of its rays: it cannot exceed 1) nor for
-    ``occlusion=False`` (facets hidden behind others are counted: rows may exceed 1 by design).
-    """
-    if rows.numel() == 0:
-        return 0.0
-    sums = torch.zeros(F, dtype=torch.float64).index_add_(0, rows, vals)
-    if method != "quadrature" or occlusion is False:
-        return float(sums.max())
-    limit = torch.full((F,), 1.0 + max(ROW_SUM_SLACK * quadrature_tol, 1e-12), dtype=torch.float64)
-    if isinstance(occluded, Tensor):
-        limit[occluded] = 1.0 + OCCLUDED_ROW_SLACK
-    bad = torch.nonzero(sums > limit).reshape(-1)
-    if bad.numel():
-        worst = int(bad[torch.argmax(sums[bad] - limit[bad])])
-        raise GeometryError(
-            f"form-factor rows must sum to at most 1; got {float(sums[worst]):.6g} at facet {worst} ({bad.numel()} "
-            f"rows above their tolerance, here 1 + {float(limit[worst]) - 1:.1e}). The scene probably holds "
-            "overlapping or intersecting facets (the same surface counted twice); build it with "
-            "Scene(..., duplicates='error') to name coincident ones, or 'drop' to remove them"
-        )
-    return float(sums.max())
+    if backend not in ("auto", "fused", "torch"):
+        raise ValueError(f"backend must be 'auto', 'fused' or 'torch'; got {backend!r}")
 
 
 def _quadrature(
@@ -208,6 +181,7 @@ def _quadrature(
     chunk_points: int,
     progress: bool,
     output: tuple[str, int] = ("dense", 8),
+    backend: Backend = "auto",
 ) -> tuple[Tensor, Tensor, Tensor, dict]:
     sc = scene.to(torch.float64).to("cpu")
     F = sc.num_facets
@@ -219,13 +193,14 @@ def _quadrature(
     info["pairs"] = int(iu.numel())
     info["seconds_cull"] = time.perf_counter() - t
     if iu.numel() == 0:
-        _warn_if_wrong_side(sc, eps)
+        warn_if_wrong_side(sc, eps)
         empty = torch.zeros(0, dtype=torch.int64)
         info.update(points=0, rays=0, occluded_pairs=0, occluded_facets=torch.zeros(F, dtype=torch.bool))
         return empty, empty, torch.zeros(0, dtype=torch.float64), info
 
     dom, tgt, value, need, vis = pair_values(
-        sc, iu, ju, occlusion, tol, adjacent_order, visibility_samples, chunk_points, progress, info, eps
+        sc, iu, ju, occlusion, tol, adjacent_order, visibility_samples, chunk_points, progress, info, eps,
+        backend=backend,
     )
 
     # facets with a pair whose visibility was estimated by rays: their row sums are estimates, not exact
@@ -265,22 +240,6 @@ def _facing_pairs(sc: Scene, eps: float, output: tuple[str, int]) -> tuple[Tenso
     return iu, ju
 
 
-def _warn_if_wrong_side(sc: Scene, eps: float) -> None:
-    """Warn when no pair exchanges light but the facets' back sides would (normals out of a concave mesh)."""
-    if sc.num_facets < 2:
-        return
-    back = facing_matrix(sc.corners, -sc.normals, sc.centroids, eps)
-    if bool((back & back.T).fill_diagonal_(False).any()):
-        warnings.warn(
-            f"no pair of the scene's {sc.num_facets} facets can exchange light: every facet faces away from the "
-            "others, but their back sides face each other (normals pointing out of a concave mesh, e.g. trimesh's "
-            "outward normals of a bowl or a room). The form factors are all zero. If the inside should reflect, "
-            "build the scene with Scene.from_trimesh(mesh, side='inside') (or reverse the facets' corner order)",
-            GeometryWarning,
-            stacklevel=5,
-        )
-
-
 @dataclass
 class PairClasses:
     """How each pair ``(dom, tgt)`` is integrated: shared edge / vertex (graded rules), straddling (clipped),
@@ -309,6 +268,7 @@ def pair_values(
     info: dict,
     eps: float,
     vis: PointVisibility | None = None,
+    backend: Backend = "auto",
 ) -> tuple[Tensor, Tensor, Tensor, Tensor, PointVisibility | None]:
     """``A_i F_ij`` for given pairs ``(iu, ju)`` of mutually facing facets of ``sc`` (float64, CPU).
 
@@ -316,7 +276,8 @@ def pair_values(
     integration domain), ``value = A_dom F_dom,tgt`` (clamped at 0), ``need`` the pairs whose visibility came
     from rays, and the visibility object (``vis`` when given, reused across calls). Adds ``points``,
     ``seconds_quadrature``, ``seconds_visibility``, ``pairs_adjacent`` and ``pairs_clipped`` to ``info``
-    (accumulating over calls). ``tol`` is the quadrature tolerance (``quadrature_tol`` of :func:`form_factors`).
+    (accumulating over calls). ``tol`` is the quadrature tolerance (``quadrature_tol`` of :func:`form_factors`);
+    ``backend``: see :func:`form_factors`.
     """
     areas = sc.areas
     # integrate over the smaller facet of each pair (the "domain"), contour over the other ("target")
@@ -352,8 +313,9 @@ def pair_values(
 
     bar = tqdm(total=int(dom.numel()), desc="form factors", unit="pair", leave=False,
                disable=None if progress else True, mininterval=1.0)
-    points = integrate_groups(sc, dom, tgt, cls, groups, visible, value, chunk_points, eps, bar)
-    points += integrate_clipped(sc, dom, tgt, cls, clipped, visible, value, chunk_points, eps, bar)
+    fused = (need, vis, backend) if resolve_backend(backend, sc.corners, sc.normals, sc.centroids) else None
+    points = integrate_groups(sc, dom, tgt, cls, groups, visible, value, chunk_points, eps, bar, fused)
+    points += integrate_clipped(sc, dom, tgt, cls, clipped, visible, value, chunk_points, eps, bar, fused)
     bar.close()
     value = value.clamp_min(0.0)
     seconds_vis += (vis.seconds if vis is not None else 0.0) - vis_before
@@ -421,14 +383,25 @@ def rule_groups(cls: PairClasses) -> tuple[list[tuple[str, Tensor, int]], Tensor
 
 def integrate_groups(sc: Scene, dom: Tensor, tgt: Tensor, cls: PairClasses, groups: list[tuple[str, Tensor, int]],
                      visible: Callable[[Tensor, Tensor], Tensor], value: Tensor, chunk_points: int, eps: float,
-                     bar: Any) -> int:
-    """Integrate the pairs of each rule group (domain unclipped) into ``value``; returns the quadrature points."""
+                     bar: Any, fused: tuple[Tensor, Any, Backend] | None = None) -> int:
+    """Integrate the pairs of each rule group (domain unclipped) into ``value``; returns the quadrature points.
+
+    ``fused = (need, vis, backend)`` evaluates each group in one compiled loop
+    (:func:`~torch_interreflect.formfactors.fused.group_sums`, the same numbers as the torch loop).
+    """
     corners, normals, cent = sc.corners, sc.normals, sc.centroids
     clip_t, shift = cls.clip_t, cls.shift
     points = 0
     for kind, sel, n in groups:
         u, v, w = quadrature_rule(kind, n, torch.float64, torch.device("cpu"))
         Q = u.numel()
+        if fused is not None:  # one compiled loop over the group's pairs (same numbers as the torch loop below)
+            need, vis, backend = fused
+            value[sel] = group_sums(corners, normals, cent, dom[sel], tgt[sel], shift[sel], clip_t[sel], (u, v, w), eps,
+                                    need[sel], vis, backend)
+            points += sel.numel() * Q
+            bar.update(sel.numel())
+            continue
         per = max(1, chunk_points // (Q * 5))
         for s in range(0, sel.numel(), per):
             p = sel[s : s + per]
@@ -447,7 +420,7 @@ def integrate_groups(sc: Scene, dom: Tensor, tgt: Tensor, cls: PairClasses, grou
 
 def integrate_clipped(sc: Scene, dom: Tensor, tgt: Tensor, cls: PairClasses, clipped: Tensor,
                       visible: Callable[[Tensor, Tensor], Tensor], value: Tensor, chunk_points: int, eps: float,
-                      bar: Any) -> int:
+                      bar: Any, fused: tuple[Tensor, Any, Backend] | None = None) -> int:
     """Integrate the pairs whose domain crosses the target's plane into ``value``; returns the quadrature points.
 
     The clipped polygon (at most five corners) is rotated so that its edge on the target's plane, where the
@@ -469,6 +442,12 @@ def integrate_clipped(sc: Scene, dom: Tensor, tgt: Tensor, cls: PairClasses, cli
             poly = clip_polygons(corners[dom[p]], cent[tgt[p]], normals[tgt[p]], eps)[:, :5]
             poly = rotate_to_plane_edge(poly, cent[tgt[p]], normals[tgt[p]], eps)
             target = clip_polygons(corners[tgt[p]], cent[dom[p]], normals[dom[p]], eps)[:, :5]
+            if fused is not None:  # the three fan triangles in compiled loops
+                need, vis, backend = fused
+                value[p] = fan_sums(poly, target, normals[dom[p]], rules, dom[p], tgt[p], need[p], vis, backend)
+                points += p.numel() * (rules[0][0].numel() + 2 * rules[1][0].numel())
+                bar.update(p.numel())
+                continue
             total = torch.zeros(p.numel(), dtype=torch.float64)
             for k in range(1, 4):
                 u, v, w = rules[0] if k == 1 else rules[1]

@@ -1,16 +1,39 @@
 """Ray casting against a scene's facets with Embree (through trimesh's ``embreex`` binding).
 
 Geometry work that is not differentiable: it runs once per scene, on numpy float32 arrays, and its results
-(visibility fractions, lit fractions, hit facets) are cached by the callers.
+(visibility fractions, lit fractions, hit facets) are cached by the callers. Large batches are split across
+``torch.get_num_threads()`` threads (Embree's queries release the GIL), so every core casts rays.
 """
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
+from functools import cache
+
 import numpy as np
+import torch
 
 from .scene import Scene
 
 __all__ = ["RayCaster"]
+
+#: Rays per thread below which a batch is not split (thread start-up would cost more than it saves).
+_MIN_RAYS_PER_THREAD = 1 << 14
+
+
+@cache
+def _pool(n: int) -> ThreadPoolExecutor:
+    return ThreadPoolExecutor(max_workers=n, thread_name_prefix="ti-raycast")
+
+
+def _run_split(run, n_rays: int, *arrays: np.ndarray) -> np.ndarray:
+    """``run(*arrays)`` over the rays, split into contiguous blocks across threads; results concatenated."""
+    n = min(torch.get_num_threads(), max(1, n_rays // _MIN_RAYS_PER_THREAD))
+    if n <= 1:
+        return np.asarray(run(*arrays))
+    bounds = np.linspace(0, n_rays, n + 1).astype(np.int64)
+    parts = _pool(n).map(lambda a, b: np.asarray(run(*(x[a:b] for x in arrays))), bounds[:-1], bounds[1:])
+    return np.concatenate(list(parts))
 
 
 class RayCaster:
@@ -63,9 +86,9 @@ class RayCaster:
             d = d / np.maximum(length, 1e-300)[:, None]
             o = a + d * self.eps
             tfar = np.maximum(length - 2 * self.eps, 0.0)
-            res = self._scene.run(o.astype(np.float32), d.astype(np.float32), dists=tfar.astype(np.float32),
-                                  query="OCCLUDED")
-            out[s : s + batch] = (np.asarray(res) != -1) & (tfar > 0)
+            res = _run_split(self._occluded_raw, len(a), o.astype(np.float32), d.astype(np.float32),
+                             tfar.astype(np.float32))
+            out[s : s + batch] = (res != -1) & (tfar > 0)
         return out
 
     def occluded(self, origins: np.ndarray, directions: np.ndarray, tfar: np.ndarray) -> np.ndarray:
@@ -82,8 +105,15 @@ class RayCaster:
         o = np.ascontiguousarray(origins, dtype=np.float32)
         d = np.ascontiguousarray(directions, dtype=np.float32)
         t = np.ascontiguousarray(tfar, dtype=np.float32)
-        res = np.asarray(self._scene.run(o, d, dists=np.maximum(t, 0), query="OCCLUDED"))
+        res = _run_split(self._occluded_raw, len(o), o, d, np.maximum(t, 0))
         return (res != -1) & (t > 0)
+
+    def _occluded_raw(self, o: np.ndarray, d: np.ndarray, t: np.ndarray) -> np.ndarray:
+        return self._scene.run(np.ascontiguousarray(o), np.ascontiguousarray(d), dists=np.ascontiguousarray(t),
+                               query="OCCLUDED")
+
+    def _hit_raw(self, o: np.ndarray, d: np.ndarray) -> np.ndarray:
+        return self._scene.run(np.ascontiguousarray(o), np.ascontiguousarray(d), query="INTERSECT")
 
     def first_hit(self, origins: np.ndarray, directions: np.ndarray, batch: int = 1 << 20) -> np.ndarray:
         """Index of the first facet hit by each ray (``-1`` when it escapes).
@@ -102,6 +132,6 @@ class RayCaster:
             d = directions[s : s + batch]
             d = d / np.linalg.norm(d, axis=1, keepdims=True)
             o = origins[s : s + batch] + d * self.eps
-            tri = np.asarray(self._scene.run(o.astype(np.float32), d.astype(np.float32), query="INTERSECT"))
+            tri = _run_split(self._hit_raw, len(o), o.astype(np.float32), d.astype(np.float32))
             out[s : s + batch] = np.where(tri >= 0, self._owner[np.maximum(tri, 0)], -1)
         return out

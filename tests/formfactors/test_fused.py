@@ -1,0 +1,136 @@
+"""The fused (compiled, multi-core) quadrature against Howell's values and against the torch quadrature."""
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+import torch_interreflect as ti
+from tests.oracles import HOWELL_C16, reference_tolerance
+from torch_interreflect.formfactors import fused
+from torch_interreflect.formfactors.rules import quadrature_rule
+
+F64 = torch.float64
+
+
+def hinge_scene(phi, n=1):
+    """Two unit squares sharing the y axis at interior angle ``phi`` (radians, float or 0-d tensor)."""
+    phi = torch.as_tensor(phi, dtype=F64)
+    a = torch.tensor(ti.scenes.grid_quads([0, 0, 0], [1, 0, 0], [0, 1, 0], n, n), dtype=F64)
+    d = torch.stack([torch.cos(phi), torch.zeros_like(phi), torch.sin(phi)])
+    s, t = torch.meshgrid(torch.arange(n + 1, dtype=F64) / n, torch.arange(n + 1, dtype=F64) / n, indexing="ij")
+    grid = s[..., None] * torch.tensor([0.0, 1.0, 0.0], dtype=F64) + t[..., None] * d  # [n+1, n+1, 3]
+    b = torch.stack([grid[:-1, :-1], grid[1:, :-1], grid[1:, 1:], grid[:-1, 1:]], dim=2).reshape(-1, 4, 3)
+    return ti.Scene.from_polygons(torch.cat([a, b]))
+
+
+def random_scene(seed, n=24):
+    """Random squares and triangles in a unit cube: straddling (clipped), facing and grazing pairs."""
+    rng = np.random.default_rng(seed)
+    quads, tris = [], []
+    for k in range(n):
+        c = rng.random(3)
+        nrm = rng.normal(size=3)
+        nrm /= np.linalg.norm(nrm)
+        t1 = np.cross(nrm, [1.0, 0, 0] if abs(nrm[0]) < 0.9 else [0, 1.0, 0])
+        t1 /= np.linalg.norm(t1)
+        t2 = np.cross(nrm, t1)
+        h = 0.1 + 0.2 * rng.random()
+        quad = [c - h * t1 - h * t2, c + h * t1 - h * t2, c + h * t1 + h * t2, c - h * t1 + h * t2]
+        (tris if k % 3 == 0 else quads).append(quad[:3] if k % 3 == 0 else quad)
+    parts = [ti.Scene.from_polygons(torch.tensor(np.array(p), dtype=F64)) for p in (quads, tris)]
+    return ti.Scene.concatenate(parts)
+
+
+def assert_same(a, b, rel=1e-12, atol=1e-15):
+    """Per entry: within ``rel`` of the entry, or ``atol`` (the float64 rounding of grazing entries ~1e-8)."""
+    A, B = a.to_dense().double(), b.to_dense().double()
+    assert torch.equal(A > 0, B > 0)
+    err = (A - B).abs()
+    assert bool((err <= rel * A.abs() + atol).all()), float((err / A.abs().clamp_min(1e-300)).max())
+
+
+@pytest.mark.parametrize(("angle", "ref"), HOWELL_C16)
+@pytest.mark.parametrize("n", [1, 3])
+def test_howell_c16_fused(angle, ref, n):
+    scene = hinge_scene(math.radians(angle), n)
+    K = ti.form_factors(scene, backend="fused")
+    A = scene.areas
+    F = float((A[: n * n, None] * K.to_dense()[: n * n, n * n :]).sum() / A[: n * n].sum())
+    assert abs(F - ref) <= reference_tolerance(ref, 2e-6)
+    assert K.info["pairs_adjacent"] > 0
+
+
+@pytest.mark.parametrize(
+    "build",
+    [
+        lambda: ti.scenes.cornell_box(2, dtype=F64),
+        lambda: ti.scenes.v_groove(30.0, divisions=6, dtype=F64),
+        lambda: ti.scenes.closed_box(divisions=3, dtype=F64),
+        lambda: random_scene(0),
+        lambda: random_scene(1),
+    ],
+    ids=["cornell", "v_groove", "closed_box", "random0", "random1"],
+)
+@pytest.mark.parametrize("occlusion", [False, "auto"])
+def test_fused_matches_torch(build, occlusion):
+    scene = build()
+    a = ti.form_factors(scene, backend="torch", occlusion=occlusion, layout="dense")
+    b = ti.form_factors(scene, backend="fused", occlusion=occlusion, layout="dense")
+    assert_same(a, b)
+    assert a.info["points"] == b.info["points"] and a.info["rays"] == b.info["rays"]
+
+
+def test_random_scenes_have_clipped_and_adjacent_pairs():
+    info = ti.form_factors(random_scene(0), backend="fused").info
+    assert info["pairs_clipped"] > 0
+    info = ti.form_factors(ti.scenes.cornell_box(2, dtype=F64), backend="fused", occlusion=False).info
+    assert info["pairs_clipped"] > 0 and info["pairs_adjacent"] > 0 and info["occluded_pairs"] == 0
+
+
+def test_float32_scene(dtype):
+    scene = ti.scenes.cornell_box(2, dtype=dtype)
+    a = ti.form_factors(scene, backend="torch")
+    b = ti.form_factors(scene, backend="fused")
+    assert b.dtype == dtype
+    # both compute in float64 and round the result: equal up to one rounding of the scene's dtype
+    assert_same(a, b, rel=max(1e-12, float(torch.finfo(dtype).eps)))
+
+
+def test_gradient_keeps_torch_path_and_matches_finite_differences():
+    def mean_f(phi, backend):
+        K = ti.form_factors(hinge_scene(phi, 2), backend=backend)
+        return K.to_dense().mean()
+
+    phi = torch.tensor(math.radians(50.0), dtype=F64, requires_grad=True)
+    for backend in ("auto", "fused"):  # both fall back to torch where the vertices require grad
+        (g,) = torch.autograd.grad(mean_f(phi, backend), phi)
+        h = 1e-5
+        with torch.no_grad():
+            fd = (mean_f(phi + h, "fused") - mean_f(phi - h, "fused")) / (2 * h)
+        assert abs(float(g) - float(fd)) <= 1e-8 * abs(float(fd))
+
+
+def test_group_sums_on_device(device):
+    """The same entry point runs on any device (torch there) and agrees with the CPU compiled loop."""
+    scene = ti.scenes.v_groove(40.0, divisions=3, dtype=F64)
+    F = scene.num_facets
+    iu, ju = torch.triu_indices(F, F, 1)
+    keep = (scene.centroids[ju] - scene.centroids[iu]).mul(scene.normals[iu]).sum(-1) > 0
+    iu, ju = iu[keep], ju[keep]
+    rule = quadrature_rule("plain", 5, F64, torch.device("cpu"))
+    shift = torch.zeros_like(iu)
+    clip = torch.ones_like(iu, dtype=torch.bool)
+    args = (scene.corners, scene.normals, scene.centroids)
+    cpu = fused.group_sums(*args, iu, ju, shift, clip, rule, 1e-12, backend="fused")
+    on = fused.group_sums(*(t.to(device) for t in args), iu.to(device), ju.to(device), shift.to(device),
+                          clip.to(device), tuple(t.to(device) for t in rule), 1e-12, backend="fused")
+    torch.testing.assert_close(on.cpu(), cpu, rtol=1e-12, atol=1e-15)
+    ref = fused.group_sums(*args, iu, ju, shift, clip, rule, 1e-12, backend="torch")
+    torch.testing.assert_close(ref, cpu, rtol=1e-12, atol=1e-15)
+
+
+def test_backend_is_checked():
+    with pytest.raises(ValueError, match="backend"):
+        ti.form_factors(ti.scenes.closed_box(divisions=1), backend="numba")

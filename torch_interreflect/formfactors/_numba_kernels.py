@@ -1,0 +1,143 @@
+"""Compiled CPU loops (numba) for the fused form-factor quadrature (internal; see :mod:`.fused`).
+
+One ``prange`` over pairs; each pair gathers its two facets, clips the target at the domain's horizon,
+maps the rule onto the domain (bilinear points and area Jacobians) and sums Lambert's contour formula over
+the points, with no temporary array. The arithmetic is that of :func:`.contour.point_polygon_factor`,
+:func:`..geometry._polygon.clip_polygons` and :func:`..geometry._polygon.bilinear`, in the same order, so the
+float64 results agree with the torch path to rounding.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit, prange
+
+_INV_2PI = 1.0 / (2.0 * math.pi)
+_TINY = float(np.finfo(np.float64).tiny ** 0.5)
+#: most corners of a clipped target kept (as the torch path: ``clip_polygons(...)[:, :5]``)
+_KMAX = 5
+
+
+@njit(cache=True, inline="always")
+def _clip(poly, count, px, py, pz, nx, ny, nz, eps, out, d):
+    """Clip ``poly[:count]`` to ``(y - p)·n >= -eps``; write at most ``_KMAX`` corners to ``out``; return count."""
+    for k in range(count):
+        d[k] = (poly[k, 0] - px) * nx + (poly[k, 1] - py) * ny + (poly[k, 2] - pz) * nz
+    m = 0
+    for k in range(count):
+        k1 = (k + 1) % count
+        ins = d[k] >= -eps
+        ins1 = d[k1] >= -eps
+        if ins and m < _KMAX:
+            out[m, 0] = poly[k, 0]
+            out[m, 1] = poly[k, 1]
+            out[m, 2] = poly[k, 2]
+            m += 1
+        if ins != ins1 and m < _KMAX:
+            t = d[k] / (d[k] - d[k1])
+            out[m, 0] = poly[k, 0] + t * (poly[k1, 0] - poly[k, 0])
+            out[m, 1] = poly[k, 1] + t * (poly[k1, 1] - poly[k, 1])
+            out[m, 2] = poly[k, 2] + t * (poly[k1, 2] - poly[k, 2])
+            m += 1
+    return m
+
+
+@njit(cache=True, inline="always")
+def _contour(x0, x1, x2, n0, n1, n2, poly, count):
+    """Lambert's contour formula from the point ``x`` (normal ``n``) to the closed polygon ``poly[:count]``."""
+    acc = 0.0
+    for k in range(count):
+        k1 = k + 1 if k + 1 < count else 0
+        rx = poly[k, 0] - x0
+        ry = poly[k, 1] - x1
+        rz = poly[k, 2] - x2
+        sx = poly[k1, 0] - x0
+        sy = poly[k1, 1] - x1
+        sz = poly[k1, 2] - x2
+        cx = ry * sz - rz * sy
+        cy = rz * sx - rx * sz
+        cz = rx * sy - ry * sx
+        cn = math.sqrt(cx * cx + cy * cy + cz * cz)
+        if cn > _TINY:
+            gamma = math.atan2(cn, rx * sx + ry * sy + rz * sz)
+            acc += gamma * (cx * n0 + cy * n1 + cz * n2) / cn
+    return -_INV_2PI * acc
+
+
+@njit(cache=True, inline="always")
+def _quad_sum(dom, n0, n1, n2, poly, count, u, v, w, vis, vrow):
+    """``Σ_q F(x_q → poly) |J_q| w_q vis_q`` over the rule ``(u, v, w)`` mapped bilinearly onto ``dom [4, 3]``."""
+    total = 0.0
+    for q in range(u.shape[0]):
+        uu = u[q]
+        vv = v[q]
+        a = (1 - uu) * (1 - vv)
+        b = uu * (1 - vv)
+        c = uu * vv
+        e = (1 - uu) * vv
+        x0 = a * dom[0, 0] + b * dom[1, 0] + c * dom[2, 0] + e * dom[3, 0]
+        x1 = a * dom[0, 1] + b * dom[1, 1] + c * dom[2, 1] + e * dom[3, 1]
+        x2 = a * dom[0, 2] + b * dom[1, 2] + c * dom[2, 2] + e * dom[3, 2]
+        du0 = (1 - vv) * (dom[1, 0] - dom[0, 0]) + vv * (dom[2, 0] - dom[3, 0])
+        du1 = (1 - vv) * (dom[1, 1] - dom[0, 1]) + vv * (dom[2, 1] - dom[3, 1])
+        du2 = (1 - vv) * (dom[1, 2] - dom[0, 2]) + vv * (dom[2, 2] - dom[3, 2])
+        dv0 = (1 - uu) * (dom[3, 0] - dom[0, 0]) + uu * (dom[2, 0] - dom[1, 0])
+        dv1 = (1 - uu) * (dom[3, 1] - dom[0, 1]) + uu * (dom[2, 1] - dom[1, 1])
+        dv2 = (1 - uu) * (dom[3, 2] - dom[0, 2]) + uu * (dom[2, 2] - dom[1, 2])
+        j0 = du1 * dv2 - du2 * dv1
+        j1 = du2 * dv0 - du0 * dv2
+        j2 = du0 * dv1 - du1 * dv0
+        jac = math.sqrt(j0 * j0 + j1 * j1 + j2 * j2)
+        f = _contour(x0, x1, x2, n0, n1, n2, poly, count)
+        if vrow >= 0:
+            f *= vis[vrow, q]
+        total += f * jac * w[q]
+    return total
+
+
+#: pairs per block of the parallel loop (scratch arrays are allocated once per block)
+_BLOCK = 64
+
+
+@njit(cache=True, parallel=True)
+def pair_sums(corners, normals, cent, dom, tgt, shift, clip, u, v, w, eps, vis, vrow, out):
+    """``out[p] = A_dom F_dom,tgt`` (before clamping) for pairs whose domain is a whole facet.
+
+    corners ``[F, 4, 3]``, normals/cent ``[F, 3]``; per pair: ``dom, tgt, shift`` (int64; the domain's corners
+    are rotated by ``shift``), ``clip`` (bool: clip the target at the domain's plane), ``vrow`` (row of ``vis``
+    holding the pair's per-point visible fractions, ``-1`` for none); rule ``u, v, w [Q]``.
+    """
+    P = dom.shape[0]
+    for b in prange((P + _BLOCK - 1) // _BLOCK):
+        d = np.empty((4, 3))
+        poly = np.empty((_KMAX, 3))
+        dist = np.empty(8)
+        for p in range(b * _BLOCK, min(P, (b + 1) * _BLOCK)):
+            i = dom[p]
+            j = tgt[p]
+            for k in range(4):
+                kk = (k + shift[p]) % 4
+                d[k, 0] = corners[i, kk, 0]
+                d[k, 1] = corners[i, kk, 1]
+                d[k, 2] = corners[i, kk, 2]
+            if clip[p]:
+                count = _clip(corners[j], 4, cent[i, 0], cent[i, 1], cent[i, 2],
+                              normals[i, 0], normals[i, 1], normals[i, 2], eps, poly, dist)
+            else:
+                for k in range(4):
+                    poly[k, 0] = corners[j, k, 0]
+                    poly[k, 1] = corners[j, k, 1]
+                    poly[k, 2] = corners[j, k, 2]
+                count = 4
+            out[p] = _quad_sum(d, normals[i, 0], normals[i, 1], normals[i, 2], poly, count, u, v, w, vis, vrow[p])
+
+
+@njit(cache=True, parallel=True)
+def polygon_sums(domain, normal, target, count, u, v, w, vis, vrow, out):
+    """``out[p] = Σ_q F(x_q → target_p) |J_q| w_q vis_q`` for explicit domain quads ``[P, 4, 3]`` (normals
+    ``[P, 3]``) and target polygons ``target[p, :count[p]]`` (``[P, K, 3]``)."""
+    for p in prange(domain.shape[0]):
+        out[p] = _quad_sum(domain[p], normal[p, 0], normal[p, 1], normal[p, 2], target[p], count[p],
+                           u, v, w, vis, vrow[p])

@@ -1,0 +1,219 @@
+"""The fused form-factor quadrature: Lambert's contour formula, horizon clipping and the per-pair Gauss sum in
+one compiled loop over pairs, on every core.
+
+:func:`group_sums` and :func:`fan_sums` give the same numbers as the torch quadrature of
+:func:`~torch_interreflect.formfactors.pair_values` (float64, to rounding), without its ~25 temporaries per
+point: on CPU through numba (``@njit(parallel=True)``, threads = ``torch.get_num_threads()``), elsewhere (a CUDA
+device) or when an input requires grad through the same maths in torch, which keeps autograd.
+
+``backend`` (of :func:`~torch_interreflect.form_factors` and of the functions here) selects the path:
+``"fused"`` (the compiled loop where it applies, torch otherwise), ``"torch"`` (always torch: the reference and
+the autograd path), ``"auto"`` (fused unless the scene's vertices require grad; the default).
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Callable
+from functools import cache
+from typing import Literal
+
+import torch
+from torch import Tensor
+
+from ..geometry._polygon import bilinear, clip_polygons
+from .contour import point_polygon_factor
+
+__all__ = ["Backend", "fan_sums", "fused_available", "group_sums", "resolve_backend"]
+
+Backend = Literal["auto", "fused", "torch"]
+#: Visible fractions ``[R, Q]`` at points ``x [R, Q, 3]`` of pairs ``(dom [R], tgt [R])``.
+Visibility = Callable[[Tensor, Tensor, Tensor], Tensor]
+#: Quadrature points evaluated per call of the compiled loop (bounds the visibility temporaries).
+_CHUNK_POINTS = 1 << 21
+
+
+@cache
+def _kernels():
+    """The numba module, or None when numba is missing or disabled (``TI_DISABLE_NUMBA=1``)."""
+    if os.environ.get("TI_DISABLE_NUMBA", "") not in ("", "0"):
+        return None
+    try:
+        from . import _numba_kernels
+    except ImportError:  # pragma: no cover - numba is a dependency; a broken install falls back to torch
+        return None
+    return _numba_kernels
+
+
+def fused_available(*tensors: Tensor) -> bool:
+    """Whether the compiled loop can take these inputs: numba present, CPU tensors, none requiring grad."""
+    if _kernels() is None:
+        return False
+    grad = torch.is_grad_enabled() and any(t.requires_grad for t in tensors)
+    return not grad and all(t.device.type == "cpu" for t in tensors)
+
+
+def resolve_backend(backend: Backend, *tensors: Tensor) -> bool:
+    """True for the compiled loop, False for torch, from ``backend`` and the inputs (see the module doc)."""
+    if backend not in ("auto", "fused", "torch"):
+        raise ValueError(f"backend must be 'auto', 'fused' or 'torch'; got {backend!r}")
+    return backend != "torch" and fused_available(*tensors)
+
+
+def _threads() -> None:
+    import numba
+
+    numba.set_num_threads(max(1, min(torch.get_num_threads(), numba.config.NUMBA_NUM_THREADS)))
+
+
+def _np(t: Tensor):
+    return t.detach().contiguous().numpy()
+
+
+def _domains(corners: Tensor, dom: Tensor, shift: Tensor) -> Tensor:
+    """The domain quads ``[P, 4, 3]``, corners rotated by ``shift`` (the shared edge/vertex first)."""
+    idx = (torch.arange(4, device=dom.device)[None, :] + shift[:, None]) % 4
+    return torch.gather(corners[dom], 1, idx[..., None].expand(-1, -1, 3))
+
+
+def _visible_rows(
+    need: Tensor | None, vis: Visibility | None, quads: Callable[[Tensor], Tensor], u: Tensor, v: Tensor,
+    dom: Tensor, tgt: Tensor,
+) -> tuple[Tensor, Tensor]:
+    """Visible fractions ``[R, Q]`` of the pairs that need rays, and each pair's row in it (-1: fully visible).
+
+    ``quads(rows)`` gives the domain quads ``[R, 4, 3]`` of those pairs (their points are ``bilinear(quads, u, v)``).
+    """
+    P = dom.numel()
+    vrow = torch.full((P,), -1, dtype=torch.int64)
+    if need is None or vis is None or not bool(need.any()):
+        return torch.ones(1, u.numel(), dtype=torch.float64), vrow
+    rows = torch.nonzero(need).reshape(-1)
+    x, _ = bilinear(quads(rows), u, v)
+    vrow[rows] = torch.arange(rows.numel())
+    return vis(x, dom[rows], tgt[rows]).to(torch.float64).contiguous(), vrow
+
+
+def group_sums(
+    corners: Tensor,
+    normals: Tensor,
+    cent: Tensor,
+    dom: Tensor,
+    tgt: Tensor,
+    shift: Tensor,
+    clip: Tensor,
+    rule: tuple[Tensor, Tensor, Tensor],
+    eps: float,
+    need: Tensor | None = None,
+    vis: Visibility | None = None,
+    backend: Backend = "auto",
+) -> Tensor:
+    """``A_dom F_dom,tgt`` (not clamped) of pairs whose domain is a whole facet, by one rule.
+
+    Args:
+        corners: Facet corners in metres, float64. Shape ``[F, 4, 3]``.
+        normals: Unit facet normals. Shape ``[F, 3]``.
+        cent: Facet centroids in metres. Shape ``[F, 3]``.
+        dom: Integration facet of each pair. Shape ``[P]``.
+        tgt: Contour facet of each pair. Shape ``[P]``.
+        shift: Rotation of the domain's corners (the shared edge or vertex first, for graded rules). ``[P]``.
+        clip: Whether the target crosses the domain's plane (it is clipped at the horizon). Bool ``[P]``.
+        rule: ``(u, v, w)``, each ``[Q]``, on the unit square (:func:`.rules.quadrature_rule`).
+        eps: Plane tolerance in metres (:func:`..geometry._polygon.plane_eps`).
+        need: Pairs whose points get visible fractions from ``vis``. Bool ``[P]`` (None: all visible).
+        vis: Visible fractions of points (a :class:`.visibility.PointVisibility`).
+        backend: See the module doc.
+
+    Returns:
+        ``Σ_q F(x_q → target) |J_q| w_q vis_q`` in m². Shape ``[P]``.
+    """
+    u, v, w = rule
+    if not resolve_backend(backend, corners, normals, cent):
+        return _torch_group_sums(corners, normals, cent, dom, tgt, shift, clip, rule, eps, need, vis)
+    k = _kernels()
+    _threads()
+    out = torch.empty(dom.numel(), dtype=torch.float64)
+    per = max(64, _CHUNK_POINTS // u.numel())
+    c, n, m = _np(corners), _np(normals), _np(cent)
+    un, vn, wn = _np(u), _np(v), _np(w)
+    for s in range(0, dom.numel(), per):
+        d, t, sh = dom[s : s + per], tgt[s : s + per], shift[s : s + per]
+        nd = need[s : s + per] if need is not None else None
+        fr, vrow = _visible_rows(nd, vis, lambda r: _domains(corners, d[r], sh[r]), u, v, d, t)  # noqa: B023
+        k.pair_sums(c, n, m, _np(d), _np(t), _np(sh), _np(clip[s : s + per]), un, vn, wn, float(eps),
+                    _np(fr), _np(vrow), out[s : s + per].numpy())
+    return out
+
+
+def _torch_group_sums(corners, normals, cent, dom, tgt, shift, clip, rule, eps, need, vis) -> Tensor:
+    """:func:`group_sums` in torch (any device, autograd): the quadrature of ``pair_values``, chunked."""
+    u, v, w = rule
+    out = []
+    per = max(1, (1 << 18) // (u.numel() * 5))
+    for s in range(0, dom.numel(), per):
+        d, t, sh = dom[s : s + per], tgt[s : s + per], shift[s : s + per]
+        target = corners[t]
+        if bool(clip[s : s + per].any()):
+            target = clip_polygons(target, cent[d], normals[d], eps)[:, :5]
+        x, jac = bilinear(_domains(corners, d, sh), u, v)
+        f = point_polygon_factor(x, normals[d], target)
+        if need is not None and vis is not None:
+            nd = need[s : s + per]
+            if bool(nd.any()):
+                frac = torch.ones_like(f)
+                rows = torch.nonzero(nd).reshape(-1)
+                frac[rows] = vis(x[rows].detach(), d[rows], t[rows]).to(f)
+                f = f * frac
+        out.append((f * jac * w).sum(1))
+    return torch.cat(out) if out else torch.zeros(0, dtype=corners.dtype, device=corners.device)
+
+
+def fan_sums(
+    poly: Tensor,
+    target: Tensor,
+    normal: Tensor,
+    rules: tuple[tuple[Tensor, Tensor, Tensor], tuple[Tensor, Tensor, Tensor]],
+    dom: Tensor,
+    tgt: Tensor,
+    need: Tensor | None = None,
+    vis: Visibility | None = None,
+    backend: Backend = "auto",
+) -> Tensor:
+    """Quadrature over clipped domains split into the fan triangles ``(0, k, k+1)``, ``k = 1..3``.
+
+    Args:
+        poly: The clipped domain, its edge on the target's plane first. Shape ``[P, 5, 3]``.
+        target: The (clipped) target polygon, padded by repeating a corner. Shape ``[P, K, 3]``.
+        normal: The domain's unit normal. Shape ``[P, 3]``.
+        rules: ``(edge rule, vertex rule)``: the first fan triangle gets the edge-graded rule, the others the
+            vertex-graded one.
+        dom, tgt: Facet indices of each pair (for ``vis``). Shape ``[P]``.
+        need, vis, backend: As in :func:`group_sums`.
+
+    Returns:
+        ``Σ_k Σ_q F(x_q → target) |J_q| w_q vis_q`` in m². Shape ``[P]``.
+    """
+    fused = resolve_backend(backend, poly, target, normal)
+    total = torch.zeros(poly.shape[0], dtype=poly.dtype, device=poly.device)
+    for k in range(1, 4):
+        u, v, w = rules[0] if k == 1 else rules[1]
+        tri = torch.stack([poly[:, 0], poly[:, k], poly[:, k + 1], poly[:, k + 1]], dim=1)
+        if fused:
+            kern = _kernels()
+            _threads()
+            fr, vrow = _visible_rows(need, vis, lambda r: tri[r], u, v, dom, tgt)  # noqa: B023
+            out = torch.empty(poly.shape[0], dtype=torch.float64)
+            count = torch.full((poly.shape[0],), target.shape[1], dtype=torch.int64)
+            kern.polygon_sums(_np(tri), _np(normal), _np(target), _np(count), _np(u), _np(v), _np(w), _np(fr),
+                              _np(vrow), out.numpy())
+            total += out
+            continue
+        x, jac = bilinear(tri, u, v)
+        f = point_polygon_factor(x, normal, target)
+        if need is not None and vis is not None and bool(need.any()):
+            frac = torch.ones_like(f)
+            rows = torch.nonzero(need).reshape(-1)
+            frac[rows] = vis(x[rows].detach(), dom[rows], tgt[rows]).to(f)
+            f = f * frac
+        total = total + (f * jac * w).sum(1)
+    return total
