@@ -143,7 +143,7 @@ def test_gradcheck_reflectance_illuminant() -> None:
     d = [0.2, 0.1, -1.0]
     op = gather_operator(scene, v, d)
     K = ti.form_factors(scene)
-    g = ti.lights.light_geometry(d, K, scene)
+    g = ti.lights.light_geometry(scene, K, d)
     cam = Camera(torch.tensor([[1.0, 0.5], [0.2, 1.0], [0.3, 0.3]], dtype=torch.float64), torch.tensor([500.0, 600.0]))
 
     def image(r: torch.Tensor, S: torch.Tensor) -> torch.Tensor:

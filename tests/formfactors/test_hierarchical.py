@@ -79,10 +79,10 @@ def test_near_field_equals_dense_entries(cornell):
 @pytest.mark.parametrize("r", [0.5, 0.9])
 def test_solve_against_dense(cornell, r):
     sc, dense, hier = cornell
-    e0 = ti.lights.light_geometry("light", dense, sc)[:, None]
+    e0 = ti.lights.light_geometry(sc, dense, "light")[:, None]
     refl = torch.full((sc.num_facets,), r, dtype=torch.float64)
     E = ti.solve(dense, refl, e0)
-    Eh, info = ti.solve(hier, refl, e0, method="cg", return_info=True, tol=1e-8)
+    Eh, info = ti.solver.solve_with_info(hier, refl, e0, method="cg", tol=1e-8)
     assert info.converged and info.method == "cg"
     assert _rel_rms(Eh, E) < SOLVE_RTOL
     En = ti.solve(hier, refl, e0, method="neumann", tol=1e-10)
@@ -94,8 +94,8 @@ def test_room_small():
     dense = ti.form_factors(sc)
     hier = ti.hierarchical_form_factors(sc, leaf_size=8, quadrature_tol=1e-6)
     assert hier.num_far_blocks > 0
-    e0 = ti.lights.light_geometry("lamp", dense, sc)[:, None]
-    e0h = ti.lights.light_geometry("lamp", hier, sc)[:, None]
+    e0 = ti.lights.light_geometry(sc, dense, "lamp")[:, None]
+    e0h = ti.lights.light_geometry(sc, hier, "lamp")[:, None]
     assert _rel_rms(e0h, e0) < PROD_RTOL
     refl = torch.full((sc.num_facets,), 0.7, dtype=torch.float64)
     assert _rel_rms(ti.solve(hier, refl, e0), ti.solve(dense, refl, e0)) < SOLVE_RTOL

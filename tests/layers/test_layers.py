@@ -201,16 +201,16 @@ def test_interreflection_infinite_vs_bounces(groove):
 
 def test_light_geometry(groove):
     scene, ff = groove
-    torch.testing.assert_close(light_geometry("uniform", ff), torch.ones(8, dtype=torch.float64))
+    torch.testing.assert_close(light_geometry(None, ff, "uniform"), torch.ones(8, dtype=torch.float64))
     sky = ti.lights.sky(scene, ff, torch.ones(1, dtype=torch.float64))[:, 0]
-    torch.testing.assert_close(light_geometry("sky", ff), sky)
+    torch.testing.assert_close(light_geometry(None, ff, "sky"), sky)
     d = torch.tensor([0.0, 0.0, -1.0])
-    g = light_geometry(d, ff, scene)  # plate B shades part of plate A
+    g = light_geometry(scene, ff, d)  # plate B shades part of plate A
     torch.testing.assert_close(g, ti.lights.directional(scene, d, torch.ones(1, dtype=torch.float64))[:, 0])
     assert float(g[:4].max()) == 1.0 and float(g[:4].min()) < 1.0
     mask = scene.material == 0
-    torch.testing.assert_close(light_geometry(mask, ff), math.pi * ff.to_dense()[:, mask].sum(1))
-    torch.testing.assert_close(light_geometry("plate_a", ff, scene), light_geometry(mask, ff))
+    torch.testing.assert_close(light_geometry(None, ff, mask), math.pi * ff.to_dense()[:, mask].sum(1))
+    torch.testing.assert_close(light_geometry(scene, ff, "plate_a"), light_geometry(None, ff, mask))
 
 
 def test_per_material_and_projection(groove):

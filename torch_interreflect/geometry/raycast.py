@@ -44,7 +44,7 @@ class RayCaster:
 
     Example:
         >>> import numpy as np, torch_interreflect as ti
-        >>> rc = ti.raycast.RayCaster(ti.scenes.closed_box(divisions=1))
+        >>> rc = ti.geometry.RayCaster(ti.scenes.closed_box(divisions=1))
         >>> rc.first_hit(np.array([[0.5, 0.5, 0.5]]), np.array([[0.0, 0.0, 1.0]])).tolist()
         [1]
     """
