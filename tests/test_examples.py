@@ -25,6 +25,7 @@ def _load(name: str):
         ("reflectance_recovery", ["--divisions", "1"], ["spectra.png"]),
         ("remove_interreflections", ["--coarse", "--size", "24"],
          ["v_groove/observed.png", "w_shape/direct_basis.png"]),
+        ("shape_from_interreflections", ["--divisions", "3", "--refine", "2", "--steps", "15"], ["fit.png"]),
     ],
 )
 def test_example_runs(tmp_path, capsys, name, argv, pngs):
@@ -37,6 +38,11 @@ def test_example_runs(tmp_path, capsys, name, argv, pngs):
     elif name == "reflectance_recovery":
         assert results["overall_modelled"] < results["overall_ignored"]
         assert results["overall_spectral"] < 1e-8
+    elif name == "shape_from_interreflections":
+        # measured: infinite 48.4° / 0.597 (rms 4e-3), two-bounce 51.3° / 0.656 (rms 5e-2); truth 50° / 0.6
+        assert abs(results["infinite_angle"] - 50.0) < 5.0 and abs(results["infinite_reflectance"] - 0.6) < 0.01
+        assert abs(results["two_bounce_reflectance"] - 0.6) > 3 * abs(results["infinite_reflectance"] - 0.6)
+        assert results["infinite_rms"] < 0.3 * results["two_bounce_rms"]
     else:
         for scene in ("v_groove", "w_shape"):
             assert results[f"{scene}_spectral"] < 1e-8

@@ -1,8 +1,18 @@
 """Direct irradiance ``E0`` on every facet: directional (sun-like, with cast shadows), uniform sky, uniform.
 
-Irradiance is in W·m⁻²·nm⁻¹; spectra are on the caller's wavelength grid (last dimension ``L``). The results
-are differentiable with respect to the spectra (and, for :func:`directional`, the direction through the
-cosine factor; the lit fraction from ray casting is a constant of the geometry).
+Irradiance is in W·m⁻²·nm⁻¹; spectra are on the caller's wavelength grid (last dimension ``L``).
+
+**Gradients.** Every light is differentiable with respect to its spectrum, and with respect to the geometry
+where the geometry enters smoothly:
+
+- :func:`directional`: the cosine factor ``max(0, n_i·(−d))`` passes gradients to the light direction ``d`` and
+  to the scene's corners (through the normals). The lit fraction (shadows, ray cast) is a constant of the
+  geometry: a shadow edge sweeping over a facet as the sun or a blocker moves (the boundary term) is not included.
+- :func:`sky`: ``π L (1 − Σ_j F_ij)`` is differentiable through ``F`` (so to the corners, exactly for unoccluded
+  rows: see :func:`torch_interreflect.form_factors`). The back-face coverage ``b_i`` and the ray-cast open
+  fraction of facets with occluded pairs are constants of the geometry.
+- area lights: ``π Σ_{j ∈ light} F_ij`` is differentiable through ``F``.
+- :func:`light_geometry` keeps these gradients (a given factor ``g [F]`` is taken as a constant).
 
 How :func:`light_geometry` turns a light into ``E0`` (the ``light=`` argument of the layer and of ``render``):
 ``E0[..., i, λ] = g_i · S[..., λ]`` with a
@@ -37,6 +47,12 @@ from .geometry.scene import Scene
 __all__ = ["back_coverage", "directional", "light_geometry", "lit_fraction", "sky", "uniform"]
 
 
+def _detached_cpu(scene: Scene) -> Scene:
+    """The scene in float64 on the CPU without autograd history (for ray casting: constants of the geometry)."""
+    sc = scene.to(torch.float64).to("cpu")
+    return Scene._from_parts(sc.corners.detach(), sc.is_triangle, sc.material, sc.material_names)
+
+
 def _check_spd(spd: Tensor, name: str) -> Tensor:
     if not isinstance(spd, Tensor):
         spd = torch.as_tensor(spd, dtype=torch.get_default_dtype())
@@ -54,6 +70,8 @@ def lit_fraction(
     scene: Scene, direction: Tensor, *, shadows: Literal["auto"] | bool = "auto", shadow_samples: int = 4
 ) -> Tensor:
     """Fraction of each facet's area that a directional light reaches (1 where nothing can cast a shadow).
+
+    A constant of the geometry: computed on detached corners and direction, it carries no gradient.
 
     Args:
         scene: The scene.
@@ -74,7 +92,7 @@ def lit_fraction(
     if d.numel() != 3 or not bool(torch.isfinite(d).all()) or float(d.norm()) == 0.0:
         raise ValueRangeError(f"direction must be a finite nonzero 3-vector; got {d.tolist()}")
     d = d / d.norm()
-    sc = scene.to(torch.float64).to("cpu")
+    sc = _detached_cpu(scene)
     cos = -(sc.normals @ d)
     frac = (cos > 0).to(torch.float64)
     if shadows is False:
@@ -111,7 +129,8 @@ def directional(
 
     Args:
         scene: The scene.
-        direction: Direction the light travels, shape ``[3]`` (need not be unit length). Differentiable.
+        direction: Direction the light travels, shape ``[3]`` (need not be unit length). Differentiable (with the
+            scene's corners) through the cosine factor; the lit fraction is a constant (module docstring).
         spd: Spectral irradiance on a plane facing the light, W·m⁻²·nm⁻¹, shape ``[..., L]``.
         shadows: See :func:`lit_fraction`.
         shadow_samples: Shadow rays per direction on each facet (formerly ``samples``).
@@ -186,7 +205,7 @@ def sky(
         )
     if backfaces not in ("auto", True, False):
         raise ValueError(f"backfaces must be 'auto', True or False; got {backfaces!r}")
-    open_part = 1.0 - form_factors.row_sums().detach().to(torch.float64).cpu()
+    open_part = 1.0 - form_factors.row_sums().to(torch.float64).cpu()  # keeps the gradient of F (module docstring)
     if backfaces is not False:
         open_part = open_part - back_coverage(scene, only_where_possible=backfaces == "auto", sky_samples=sky_samples)
     approx = form_factors.info.get("occluded_facets")
@@ -194,7 +213,7 @@ def sky(
         # where rows of F rest on ray-cast visibility, 1 − Σ_j F_ij is a small difference of estimates: count the
         # escaping rays directly instead (both sides of every facet block the sky)
         idx = torch.nonzero(approx.cpu()).reshape(-1)
-        escape, _ = _hemisphere_fractions(scene.to(torch.float64).to("cpu"), idx, samples=sky_samples, points=8)
+        escape, _ = _hemisphere_fractions(_detached_cpu(scene), idx, samples=sky_samples, points=8)
         open_part[idx] = escape
     open_part = open_part.clamp_min(0).to(spd.dtype).to(spd.device)
     return math.pi * open_part[:, None] * spd[..., None, :]
@@ -221,7 +240,7 @@ def back_coverage(
     """
     from .geometry._polygon import facing_any
 
-    sc = scene.to(torch.float64).to("cpu")
+    sc = _detached_cpu(scene)
     F = sc.num_facets
     b = torch.zeros(F, dtype=torch.float64)
     idx = torch.nonzero(facing_any(scene, one_way=True)).reshape(-1) if only_where_possible else torch.arange(F)
@@ -337,7 +356,7 @@ def light_geometry(
         if light == "uniform":
             return torch.ones(n, dtype=dtype, device=device)
         if light == "sky":
-            return math.pi * (1.0 - form_factors.row_sums().detach()).clamp_min(0.0)
+            return math.pi * (1.0 - form_factors.row_sums()).clamp_min(0.0)
         if scene is None or scene.material_names is None or light not in scene.material_names:
             names = list(scene.material_names) if scene is not None and scene.material_names else []
             raise ValueError(
@@ -351,7 +370,7 @@ def light_geometry(
         if t.shape != (n,):
             raise ShapeError(f"an area-light mask must have shape [{n}] (one flag per facet); got {list(t.shape)}")
         cols = t.to(device=device, dtype=dtype)[:, None]
-        return math.pi * form_factors.matmul(cols).reshape(n).detach()
+        return math.pi * form_factors.matmul(cols).reshape(n)
     if t.numel() == 3 and t.ndim == 1 and n != 3:
         if scene is None:
             raise ValueError("a directional light needs the scene (for normals and shadows); pass a Scene")

@@ -35,7 +35,7 @@ def check_row_sums(
     """
     if rows.numel() == 0:
         return 0.0
-    sums = torch.zeros(F, dtype=torch.float64).index_add_(0, rows, vals)
+    sums = torch.zeros(F, dtype=torch.float64).index_add_(0, rows, vals.detach())
     if method != "quadrature" or occlusion is False:
         return float(sums.max())
     limit = torch.full((F,), 1.0 + max(ROW_SUM_SLACK * quadrature_tol, 1e-12), dtype=torch.float64)

@@ -114,6 +114,18 @@ def form_factors(
         GeometryWarning: no facet pair can exchange light although the facets' other sides could (normals
             pointing out of a concave mesh: see ``Scene.from_trimesh(side=...)``).
 
+    Gradients:
+        With ``method="quadrature"`` the matrix keeps the graph of ``scene.corners`` (a scene built from vertices
+        that require grad, or from a parameterised builder such as ``ti.scenes.v_groove(angle)`` with a tensor
+        angle): ``F`` is the quadrature of Lambert's contour formula, a smooth function of the corners, so
+        autograd gives its exact derivative while the pair classes, the Gauss orders and the clipping stay fixed
+        (they are chosen from the geometry but are piecewise constant in it). Measured against central finite
+        differences in float64: ``d mean(E) / d angle`` of a V-groove to 8e-11 relative, Howell's C-14 derivative
+        to 6e-8 (``tests/formfactors/test_geometry_grad.py``). Not included: the derivative of ray-cast visibility
+        (occluded pairs carry the interior term only, see
+        :mod:`~torch_interreflect.formfactors.visibility`), and ``method="monte_carlo"`` (no gradient). ``areas``
+        of the result are detached.
+
     Shape:
         - output ``.to_dense()``: ``[F, F]``
 

@@ -1,5 +1,13 @@
 """Visibility between facets: which pairs a third facet could block, and kernel-weighted visible fractions
-from quadrature points by Embree rays."""
+from quadrature points by Embree rays.
+
+**Gradients.** Visibility is computed on detached geometry: the visible fraction of a pair at a quadrature point
+is a constant of the geometry for autograd. Form factors of occluded pairs, ``∫ f(x) vis(x) dA_x``, then carry the
+*interior* part of the derivative (the unoccluded point-to-polygon factor ``f`` and the domain's Jacobian move with
+the corners; ``vis`` does not), and miss the *boundary* term: how the visible fraction changes as silhouette
+edges (of blockers, or of the pair itself seen past a blocker) move. A blocker's corners get no gradient at all
+through ``F``. ``tests/formfactors/test_geometry_grad.py`` measures the bias on a moving blocker and on a W fold.
+"""
 
 from __future__ import annotations
 
@@ -16,12 +24,12 @@ from ..geometry.scene import Scene
 __all__ = ["PointVisibility", "blocker_candidates"]
 
 
-
 def blocker_candidates(sc: Scene, dom: Tensor, tgt: Tensor, eps: float) -> Tensor:
     """Pairs that some third facet could block. Conservative tests per plane group (coplanar facets), so the
     cost is pairs × planes: the group's plane strictly separates corners of the pair, its bounding box overlaps
     the pair's, and its bounding sphere comes within reach of the pair's convex hull (which lies inside the
     capsule around the segment between the two centroids, of radius the larger facet radius)."""
+    sc = _detached(sc)
     corners, cent = sc.corners, sc.centroids
     need = torch.zeros(dom.numel(), dtype=torch.bool)
     groups = plane_groups(sc, eps)
@@ -52,15 +60,24 @@ def blocker_candidates(sc: Scene, dom: Tensor, tgt: Tensor, eps: float) -> Tenso
     return need
 
 
+def _detached(sc: Scene) -> Scene:
+    """The scene without autograd history (visibility is a constant of the geometry)."""
+    if not sc.corners.requires_grad:
+        return sc
+    return Scene._from_parts(sc.corners.detach(), sc.is_triangle, sc.material, sc.material_names)
+
+
 class PointVisibility:
     """Kernel-weighted visible fraction of a target facet from quadrature points, by Embree rays.
 
     From each point ``x`` rays go to ``n × n`` midpoint-rule points ``y`` of the target; each is weighted by
     ``cos θ_x cos θ_y / |x − y|²`` times ``y``'s area, so the fraction converges to the visibility-weighted
-    point-to-polygon factor over the plain one as ``n`` grows.
+    point-to-polygon factor over the plain one as ``n`` grows. Computed on detached geometry: the result carries
+    no gradient (module docstring).
     """
 
     def __init__(self, sc: Scene, n: int, caster: Any = None) -> None:
+        sc = _detached(sc)
         self.caster = caster if caster is not None else RayCaster(sc)
         pts, wts = facet_samples(sc.corners, n)  # [F, S, 3], [F, S]
         self.origin = torch.as_tensor(self.caster.origin)
@@ -70,8 +87,12 @@ class PointVisibility:
         self.rays = 0
         self.seconds = 0.0
 
+    @torch.no_grad()
     def __call__(self, x: Tensor, dom: Tensor, tgt: Tensor) -> Tensor:
+        """Visible fractions ``[P, Q]`` (float64, no gradient) from points ``x [P, Q, 3]`` of facets ``dom [P]``
+        to facets ``tgt [P]``."""
         t0 = time.perf_counter()
+        x = x.detach()
         P, Q, _ = x.shape
         S = self.pts.shape[1]
         out = torch.empty(P, Q, dtype=torch.float64)

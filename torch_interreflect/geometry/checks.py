@@ -29,7 +29,7 @@ def check_facets(corners: Tensor, is_triangle: Tensor) -> None:
     if not bool(finite.all()):
         bad = int(torch.nonzero(~finite)[0])
         raise GeometryError(f"facet {bad} has non-finite corners: {c[bad].tolist()}")
-    cd = c.double()
+    cd = c.detach().double()  # validation only: no graph, no warnings for corners that require grad
     diam = float((cd.reshape(-1, 3).max(0).values - cd.reshape(-1, 3).min(0).values).norm())
     # fan area (sum of the two triangles' areas): a bow-tie quad is caught later, as non-convex
     a, b, cc, d = cd.unbind(1)

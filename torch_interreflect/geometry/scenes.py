@@ -1,4 +1,4 @@
-"""Built-in scenes: the V-groove and W shape of Deeb et al. (2017), box corner, closed box, Cornell box.
+"""Built-in scenes: the V-groove and W shape of Deeb et al. (2017), folds, box corner, closed box, Cornell box.
 
 All sizes are in metres. Every builder returns a :class:`~torch_interreflect.Scene` whose
 ``material`` index names its parts (``scene.material_names``), with facets ordered part by part.
@@ -6,15 +6,15 @@ All sizes are in metres. Every builder returns a :class:`~torch_interreflect.Sce
 
 from __future__ import annotations
 
-import math
 from collections.abc import Sequence
 
 import numpy as np
 import torch
+from torch import Tensor
 
 from .scene import Scene
 
-__all__ = ["box_corner", "closed_box", "cornell_box", "grid_quads", "room", "v_groove", "w_shape"]
+__all__ = ["box_corner", "closed_box", "cornell_box", "fold", "grid_quads", "room", "v_groove", "w_shape"]
 
 
 def _pair(x: int | Sequence[int], name: str) -> tuple[int, int]:
@@ -45,17 +45,42 @@ def grid_quads(origin: Sequence[float], a: Sequence[float], b: Sequence[float], 
     return q.reshape(-1, 4, 3)
 
 
-def _build(parts: list[tuple[str, np.ndarray]], dtype: torch.dtype | None) -> Scene:
-    corners = np.concatenate([c for _, c in parts])
-    material = np.concatenate([np.full(len(c), k) for k, (_, c) in enumerate(parts)])
+def _grid_quads_t(origin: Tensor, a: Tensor, b: Tensor, na: int, nb: int) -> Tensor:
+    """:func:`grid_quads` on tensors (float64 ``[3]`` each): differentiable in ``origin``, ``a`` and ``b``."""
+    s = torch.arange(na + 1, dtype=a.dtype)[:, None, None] / na
+    t = torch.arange(nb + 1, dtype=a.dtype)[None, :, None] / nb
+    p = origin + s * a + t * b  # [na+1, nb+1, 3]
+    q = torch.stack([p[:-1, :-1], p[1:, :-1], p[1:, 1:], p[:-1, 1:]], dim=2)  # [na, nb, 4, 3]
+    return q.reshape(-1, 4, 3)
+
+
+def _param(x: float | Tensor, name: str) -> Tensor:
+    """A scalar parameter as a float64 tensor that keeps its graph (a Python number, or a 0-d/1-element tensor)."""
+    t = x if isinstance(x, Tensor) else torch.as_tensor(float(x), dtype=torch.float64)
+    if t.numel() != 1:
+        raise ValueError(f"{name} must be a number or a one-element floating tensor; got shape {list(t.shape)}")
+    return t.reshape(()).to(torch.float64)
+
+
+def _param_dtype(dtype: torch.dtype | None, *params: object) -> torch.dtype:
+    """``dtype``, else that of the first floating tensor parameter, else torch's default dtype."""
+    if dtype is not None:
+        return dtype
+    for p in params:
+        if isinstance(p, Tensor) and p.is_floating_point():
+            return p.dtype
+    return torch.get_default_dtype()
+
+
+def _build(parts: list[tuple[str, np.ndarray | Tensor]], dtype: torch.dtype | None) -> Scene:
     dt = dtype or torch.get_default_dtype()
-    return Scene.from_polygons(
-        torch.as_tensor(corners, dtype=dt), material=material, material_names=[n for n, _ in parts]
-    )
+    corners = torch.cat([torch.as_tensor(c, dtype=torch.float64) for _, c in parts]).to(dt)
+    material = np.concatenate([np.full(len(c), k) for k, (_, c) in enumerate(parts)])
+    return Scene.from_polygons(corners, material=material, material_names=[n for n, _ in parts])
 
 
 def v_groove(
-    angle_deg: float,
+    angle_deg: float | Tensor,
     size: tuple[float, float] = (0.09, 0.06),
     divisions: int | Sequence[int] = 10,
     *,
@@ -66,100 +91,177 @@ def v_groove(
     The hinge runs along ``+y`` from the origin. Plate A lies in ``z = 0`` (``x >= 0``, normal ``+z``); plate
     B leaves the hinge in direction ``(cos φ, 0, sin φ)`` with its normal into the groove.
 
+    **Differentiable geometry.** ``angle_deg`` (and either entry of ``size``) may be a tensor that requires grad:
+    the corners are built with torch operations, so ``scene.corners`` keeps the graph and form factors, light and
+    images computed from the scene pass gradients back to it (``d E / d angle``: see
+    :func:`torch_interreflect.form_factors`).
+
     Args:
-        angle_deg: Interior angle φ between the plates in degrees, in (0, 180).
+        angle_deg: Interior angle φ between the plates in degrees, in (0, 180); a number or a one-element tensor.
         size: ``(length along the hinge, width away from the hinge)`` of each plate in metres (the paper's
-            9 cm × 6 cm by default).
+            9 cm × 6 cm by default); numbers or one-element tensors.
         divisions: Facets ``(along the hinge, across)`` per plate, or one int for both (paper: 10 × 10).
-        dtype: Floating dtype.
+        dtype: Floating dtype (default: that of a tensor ``angle_deg``, else torch's default).
 
     Returns:
         A scene with ``2 * n_along * n_across`` quads. Facet ``p * n_across * n_along + c * n_along + r`` is on
         plate ``p`` (material 0 = "plate_a", 1 = "plate_b"), column ``c`` (0 nearest the hinge), row ``r``.
 
     Example:
-        >>> import torch_interreflect as ti
+        >>> import torch, torch_interreflect as ti
         >>> ti.scenes.v_groove(45.0).num_facets
         200
+        >>> angle = torch.tensor(45.0, dtype=torch.float64, requires_grad=True)
+        >>> ti.scenes.v_groove(angle, divisions=2).corners.requires_grad
+        True
     """
-    if not 0.0 < float(angle_deg) < 180.0:
-        raise ValueError(f"angle_deg must lie in (0, 180); got {angle_deg}")
-    length, width = (float(v) for v in size)
-    if length <= 0 or width <= 0:
-        raise ValueError(f"size must be positive (length, width); got {size}")
+    phi_deg = _param(angle_deg, "angle_deg")
+    if not 0.0 < float(phi_deg.detach()) < 180.0:
+        raise ValueError(f"angle_deg must lie in (0, 180); got {float(phi_deg.detach())}")
+    length, width = (_param(v, "size") for v in size)
+    if float(length.detach()) <= 0 or float(width.detach()) <= 0:
+        raise ValueError(f"size must be positive (length, width); got {[float(v.detach()) for v in (length, width)]}")
     n_along, n_across = _pair(divisions, "divisions")
-    phi = math.radians(angle_deg)
-    d = np.array([math.cos(phi), 0.0, math.sin(phi)])
-    y = np.array([0.0, length, 0.0])
+    phi = torch.deg2rad(phi_deg)
+    zero = torch.zeros((), dtype=torch.float64)
+    d = torch.stack([torch.cos(phi), zero, torch.sin(phi)])
+    y = torch.stack([zero, length, zero])
+    ex = torch.stack([width, zero, zero])
+    origin = torch.zeros(3, dtype=torch.float64)
     # plate A: columns along +x (slow index), rows along y; normal x × y = +z
-    plate_a = grid_quads([0, 0, 0], [width, 0, 0], y, n_across, n_along)
+    plate_a = _grid_quads_t(origin, ex, y, n_across, n_along)
     # plate B: slow index along d; normal must be y × d (into the groove), so reverse the corner order
-    plate_b = grid_quads([0, 0, 0], width * d, y, n_across, n_along)[:, ::-1]
-    return _build([("plate_a", plate_a), ("plate_b", np.ascontiguousarray(plate_b))], dtype)
+    plate_b = _grid_quads_t(origin, width * d, y, n_across, n_along).flip(1)
+    return _build([("plate_a", plate_a), ("plate_b", plate_b)], _param_dtype(dtype, angle_deg, *size))
 
 
 def box_corner(
-    size: float = 1.0, divisions: int | Sequence[int] = 4, *, dtype: torch.dtype | None = None
+    size: float | Tensor = 1.0, divisions: int | Sequence[int] = 4, *, dtype: torch.dtype | None = None
 ) -> Scene:
     """Three mutually perpendicular squares meeting at the origin (a room corner), normals inward.
 
     Args:
-        size: Edge length of each square in metres.
+        size: Edge length of each square in metres (a number, or a one-element tensor whose graph the corners
+            keep).
         divisions: Facets per edge (one int, or a pair for the two directions of each square).
+        dtype: Floating dtype (default: that of a tensor ``size``, else torch's default).
 
     Returns:
         A scene with materials ``floor`` (z = 0), ``wall_x`` (x = 0) and ``wall_y`` (y = 0).
     """
     n1, n2 = _pair(divisions, "divisions")
-    s = float(size)
-    ex, ey, ez = np.eye(3) * s
+    ex, ey, ez = torch.eye(3, dtype=torch.float64) * _param(size, "size")
+    o = torch.zeros(3, dtype=torch.float64)
     parts = [
-        ("floor", grid_quads([0, 0, 0], ex, ey, n1, n2)),
-        ("wall_x", grid_quads([0, 0, 0], ey, ez, n1, n2)),
-        ("wall_y", grid_quads([0, 0, 0], ez, ex, n1, n2)),
+        ("floor", _grid_quads_t(o, ex, ey, n1, n2)),
+        ("wall_x", _grid_quads_t(o, ey, ez, n1, n2)),
+        ("wall_y", _grid_quads_t(o, ez, ex, n1, n2)),
     ]
-    return _build(parts, dtype)
+    return _build(parts, _param_dtype(dtype, size))
 
 
 def closed_box(
-    size: float | Sequence[float] = 1.0, divisions: int = 3, *, dtype: torch.dtype | None = None
+    size: float | Sequence[float] | Tensor = 1.0, divisions: int = 3, *, dtype: torch.dtype | None = None
 ) -> Scene:
     """The six inner faces of a rectangular box, normals pointing inward (a closed enclosure).
 
     Args:
-        size: Edge lengths ``(sx, sy, sz)`` in metres, or one number for a cube.
+        size: Edge lengths ``(sx, sy, sz)`` in metres, or one number for a cube; numbers or a tensor (``[3]`` or
+            one element) whose graph the corners keep.
         divisions: Facets per edge of each face.
+        dtype: Floating dtype (default: that of a tensor ``size``, else torch's default).
 
     Returns:
         A scene with ``6 * divisions²`` quads, materials ``bottom, top, y0, y1, x0, x1``.
     """
-    sx, sy, sz = (float(size),) * 3 if np.isscalar(size) else (float(v) for v in size)  # type: ignore[arg-type]
+    if isinstance(size, Tensor) and size.numel() == 3:
+        sx, sy, sz = size.reshape(3).to(torch.float64).unbind()
+    elif isinstance(size, Tensor) or np.isscalar(size):
+        sx = sy = sz = _param(size, "size")  # type: ignore[arg-type]
+    else:
+        sx, sy, sz = (_param(v, "size") for v in size)  # type: ignore[union-attr]
     n = int(divisions)
     if n < 1:
         raise ValueError(f"divisions must be >= 1; got {divisions}")
-    ex, ey, ez = np.diag([sx, sy, sz])
+    ex, ey, ez = torch.diag(torch.stack([sx, sy, sz]))
+    o = torch.zeros(3, dtype=torch.float64)
     parts = [
-        ("bottom", grid_quads([0, 0, 0], ex, ey, n, n)),
-        ("top", grid_quads([0, 0, sz], ey, ex, n, n)),
-        ("y0", grid_quads([0, 0, 0], ez, ex, n, n)),
-        ("y1", grid_quads([0, sy, 0], ex, ez, n, n)),
-        ("x0", grid_quads([0, 0, 0], ey, ez, n, n)),
-        ("x1", grid_quads([sx, 0, 0], ez, ey, n, n)),
+        ("bottom", _grid_quads_t(o, ex, ey, n, n)),
+        ("top", _grid_quads_t(ez, ey, ex, n, n)),
+        ("y0", _grid_quads_t(o, ez, ex, n, n)),
+        ("y1", _grid_quads_t(ey, ex, ez, n, n)),
+        ("x0", _grid_quads_t(o, ey, ez, n, n)),
+        ("x1", _grid_quads_t(ex, ez, ey, n, n)),
     ]
-    return _build(parts, dtype)
+    return _build(parts, _param_dtype(dtype, size))
 
 
-def _extrude(p0: np.ndarray, p1: np.ndarray, length: float, n_across: int, n_along: int) -> np.ndarray:
-    """Quads of the plate swept by the profile segment p0→p1 (in xz) along +y, normal = t rotated +90°."""
-    a = np.array([p1[0] - p0[0], 0.0, p1[1] - p0[1]])
-    return grid_quads([p0[0], 0.0, p0[1]], a, [0.0, length, 0.0], n_across, n_along)
+def fold(
+    profile: Tensor | Sequence[Sequence[float]],
+    length: float | Tensor = 0.1,
+    divisions: int | Sequence[int] = 10,
+    *,
+    names: Sequence[str] | None = None,
+    dtype: torch.dtype | None = None,
+) -> Scene:
+    """A folded sheet: the polyline ``profile`` in the xz-plane swept ``length`` along ``+y`` (V-grooves, W folds,
+    corrugations).
+
+    Plate ``k`` joins profile points ``k`` and ``k + 1``; its normal is the profile's direction rotated by +90° in
+    the xz-plane (to the left when walking along the profile with ``+z`` up and ``+x`` right: a profile going down
+    then up reflects on the upper side). ``profile`` may be a tensor that requires grad (fold heights, widths):
+    the corners keep its graph.
+
+    Args:
+        profile: Points ``(x, z)`` in metres. Shape ``[K + 1, 2]`` for ``K`` plates.
+        length: Extent along ``+y`` in metres (a number or a one-element tensor).
+        divisions: ``(along, across)`` facets per plate, ``across`` one int for all plates or one per plate; or
+            one int for both.
+        names: Material name of each plate (default ``plate_0, plate_1, ...``).
+        dtype: Floating dtype (default: that of a tensor ``profile``, else torch's default).
+
+    Returns:
+        A scene with one material per plate, plates in profile order, each ``across`` columns (slow index, from
+        point ``k``) of ``along`` rows.
+
+    Example:
+        >>> import torch, torch_interreflect as ti
+        >>> h = torch.tensor([0.05, 0.03, 0.05], dtype=torch.float64, requires_grad=True)
+        >>> zero = torch.zeros(1, dtype=torch.float64)
+        >>> z = torch.stack([h[0], zero[0], h[1], zero[0], h[2]])
+        >>> x = torch.tensor([0.0, 0.03, 0.05, 0.07, 0.1], dtype=torch.float64)
+        >>> w = ti.scenes.fold(torch.stack([x, z], dim=1), divisions=(2, 3))
+        >>> w.num_facets, w.corners.requires_grad
+        (24, True)
+    """
+    prof = profile if isinstance(profile, Tensor) else torch.as_tensor(np.asarray(profile, dtype=np.float64))
+    if prof.ndim != 2 or prof.shape[0] < 2 or prof.shape[1] != 2:
+        raise ValueError(f"profile must be (x, z) points of shape [K + 1, 2] with K >= 1; got {list(prof.shape)}")
+    prof = prof.to(torch.float64)
+    k = prof.shape[0] - 1
+    if isinstance(divisions, (int, np.integer)):
+        n_along, across = int(divisions), [int(divisions)] * k
+    else:
+        n_along, rest = int(divisions[0]), list(divisions[1:])
+        across = [int(v) for v in rest] * (k if len(rest) == 1 else 1)
+    if len(across) != k or min([*across, n_along]) < 1:
+        raise ValueError(f"divisions must be an int or (along, across) / (along, *across per plate) ints >= 1 for "
+                         f"{k} plates; got {divisions!r}")
+    names = list(names) if names is not None else [f"plate_{i}" for i in range(k)]
+    if len(names) != k:
+        raise ValueError(f"names must name each of the {k} plates; got {len(names)}")
+    zero = torch.zeros((), dtype=torch.float64)
+    y = torch.stack([zero, _param(length, "length"), zero])
+    pts = torch.stack([prof[:, 0], torch.zeros_like(prof[:, 0]), prof[:, 1]], dim=1)  # [K + 1, 3]
+    parts = [(names[i], _grid_quads_t(pts[i], pts[i + 1] - pts[i], y, across[i], n_along)) for i in range(k)]
+    return _build(parts, _param_dtype(dtype, profile, length))
 
 
 def w_shape(
-    valley_angle_deg: float = 45.0,
-    outer: float = 0.08,
-    inner: float = 0.04,
-    length: float = 0.10,
+    valley_angle_deg: float | Tensor = 45.0,
+    outer: float | Tensor = 0.08,
+    inner: float | Tensor = 0.04,
+    length: float | Tensor = 0.10,
     divisions: Sequence[int] = (10, 20, 10),
     *,
     dtype: torch.dtype | None = None,
@@ -168,7 +270,8 @@ def w_shape(
 
     The profile lies in the xz-plane and is swept ``length`` along ``+y``: outer-left, inner-left,
     inner-right, outer-right plates, with valleys of ``valley_angle_deg`` and a central ridge lower than the
-    outer tops, so the ridge hides part of each outer plate from the other (occlusion).
+    outer tops, so the ridge hides part of each outer plate from the other (occlusion). Any parameter may be a
+    one-element tensor that requires grad (the corners keep its graph); :func:`fold` builds other profiles.
 
     Args:
         valley_angle_deg: Interior angle at both valleys, degrees.
@@ -176,30 +279,32 @@ def w_shape(
         inner: Width of the inner plates (m).
         length: Extent along the valleys (m), the paper's 10 cm.
         divisions: ``(along, outer across, inner across)`` facets per plate (paper: 10, 20, 10).
+        dtype: Floating dtype (default: that of a tensor parameter, else torch's default).
 
     Returns:
         A scene with materials ``outer_left, inner_left, inner_right, outer_right``.
     """
-    if not 0.0 < valley_angle_deg < 180.0:
-        raise ValueError(f"valley_angle_deg must lie in (0, 180); got {valley_angle_deg}")
+    angle = _param(valley_angle_deg, "valley_angle_deg")
+    if not 0.0 < float(angle.detach()) < 180.0:
+        raise ValueError(f"valley_angle_deg must lie in (0, 180); got {float(angle.detach())}")
     if len(divisions) != 3 or min(divisions) < 1:
         raise ValueError(f"divisions must be three ints >= 1 (along, outer, inner); got {divisions!r}")
     n_along, n_outer, n_inner = (int(v) for v in divisions)
-    half = math.radians(90.0 - valley_angle_deg / 2.0)  # elevation of each plate at a symmetric valley
-    up_l = np.array([-math.cos(half), math.sin(half)])
-    up_r = np.array([math.cos(half), math.sin(half)])
-    v1 = np.array([0.0, 0.0])
-    p0 = v1 + outer * up_l
-    ridge = v1 + inner * up_r
-    v2 = ridge + inner * np.array([math.cos(half), -math.sin(half)])
-    p4 = v2 + outer * up_r
-    parts = [
-        ("outer_left", _extrude(p0, v1, length, n_outer, n_along)),
-        ("inner_left", _extrude(v1, ridge, length, n_inner, n_along)),
-        ("inner_right", _extrude(ridge, v2, length, n_inner, n_along)),
-        ("outer_right", _extrude(v2, p4, length, n_outer, n_along)),
-    ]
-    return _build(parts, dtype)
+    half = torch.deg2rad(90.0 - angle / 2.0)  # elevation of each plate at a symmetric valley
+    c, s = torch.cos(half), torch.sin(half)
+    wo, wi = _param(outer, "outer"), _param(inner, "inner")
+    v1 = torch.zeros(2, dtype=torch.float64)
+    p0 = v1 + wo * torch.stack([-c, s])
+    ridge = v1 + wi * torch.stack([c, s])
+    v2 = ridge + wi * torch.stack([c, -s])
+    p4 = v2 + wo * torch.stack([c, s])
+    return fold(
+        torch.stack([p0, v1, ridge, v2, p4]),
+        length,
+        (n_along, n_outer, n_inner, n_inner, n_outer),
+        names=["outer_left", "inner_left", "inner_right", "outer_right"],
+        dtype=_param_dtype(dtype, valley_angle_deg, outer, inner, length),
+    )
 
 
 # The Cornell box as published by the Cornell Program of Computer Graphics (millimetres).

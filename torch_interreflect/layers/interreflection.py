@@ -39,7 +39,11 @@ class Interreflection(nn.Module):
     index and (through submodules) the camera sensitivities, a :class:`~torch_interreflect.imaging.Projection` and
     a reflectance parametrisation are buffers, so ``.to(device, dtype)`` moves everything. Gradients reach the
     reflectance (or its parameters), the illuminant spectrum or ``E0``, and the camera sensitivities, by the
-    adjoint of :func:`~torch_interreflect.solve`.
+    adjoint of :func:`~torch_interreflect.solve`. Built from a scene whose corners require grad (e.g.
+    ``ti.scenes.v_groove(angle)`` with a tensor angle), the form factors and the light factor keep their graph, so
+    the output also passes gradients to the geometry (build the layer again after each step that changes it; see
+    :func:`torch_interreflect.form_factors` for what the gradient includes). Not with ``accuracy=`` (the refinement
+    plan is detached).
 
     Args:
         scene_or_form_factors: A :class:`~torch_interreflect.Scene` (its form factors are computed with default
@@ -137,7 +141,8 @@ class Interreflection(nn.Module):
         """The buffers: matrix, areas, light factor, leaf → facet map (when refined), material index."""
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", UserWarning)  # sparse CSR beta warning
-            self.register_buffer("matrix", ff.matrix.detach())
+            # form factors of a scene whose corners require grad keep their graph (gradients to the geometry)
+            self.register_buffer("matrix", ff.matrix if ff.matrix.requires_grad else ff.matrix.detach())
         self.register_buffer("areas", ff.areas.detach())
         if refined is not None:
             self.register_buffer("light_factor", refined.light_factor.detach())
