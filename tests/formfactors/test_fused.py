@@ -134,3 +134,16 @@ def test_group_sums_on_device(device):
 def test_backend_is_checked():
     with pytest.raises(ValueError, match="backend"):
         ti.form_factors(ti.scenes.closed_box(divisions=1), backend="numba")
+
+
+@pytest.mark.parametrize("threads", [1, 2])
+def test_fused_kernel_leaves_torch_threads_alone(threads):
+    """numba's OpenMP layer shares the runtime with torch: the fused path must not change torch's thread count
+    (it turned a test worker's 1 thread into 2, where batched LU on torch 2.13 CPU gives invalid pivots)."""
+    prev = torch.get_num_threads()
+    torch.set_num_threads(threads)
+    try:
+        ti.form_factors(ti.scenes.w_shape(), backend="fused")
+        assert torch.get_num_threads() == threads
+    finally:
+        torch.set_num_threads(prev)

@@ -60,10 +60,22 @@ def resolve_backend(backend: Backend, *tensors: Tensor) -> bool:
     return backend != "torch" and fused_available(*tensors)
 
 
-def _threads() -> None:
+def _run(kernel: Callable[..., None], *args: object) -> None:
+    """Call a compiled kernel with ``torch.get_num_threads()`` threads, leaving torch's thread count as it was.
+
+    numba's OpenMP threading layer shares the OpenMP runtime with torch: setting numba's threads (or launching a
+    parallel region) changes what ``torch.get_num_threads()`` returns. Left alone, a user's (or a test worker's)
+    ``torch.set_num_threads(1)`` silently became 2 after the first form factors, which also matters for
+    correctness (batched LU on torch 2.13 CPU gives invalid pivots with 2 threads).
+    """
     import numba
 
-    numba.set_num_threads(max(1, min(torch.get_num_threads(), numba.config.NUMBA_NUM_THREADS)))
+    prev = torch.get_num_threads()
+    try:
+        numba.set_num_threads(max(1, min(prev, numba.config.NUMBA_NUM_THREADS)))
+        kernel(*args)
+    finally:
+        torch.set_num_threads(prev)
 
 
 def _np(t: Tensor):
@@ -131,7 +143,6 @@ def group_sums(
     if not resolve_backend(backend, corners, normals, cent):
         return _torch_group_sums(corners, normals, cent, dom, tgt, shift, clip, rule, eps, need, vis)
     k = _kernels()
-    _threads()
     out = torch.empty(dom.numel(), dtype=torch.float64)
     per = max(64, _CHUNK_POINTS // u.numel())
     c, n, m = _np(corners), _np(normals), _np(cent)
@@ -140,8 +151,8 @@ def group_sums(
         d, t, sh = dom[s : s + per], tgt[s : s + per], shift[s : s + per]
         nd = need[s : s + per] if need is not None else None
         fr, vrow = _visible_rows(nd, vis, lambda r: _domains(corners, d[r], sh[r]), u, v, d, t)  # noqa: B023
-        k.pair_sums(c, n, m, _np(d), _np(t), _np(sh), _np(clip[s : s + per]), un, vn, wn, float(eps),
-                    _np(fr), _np(vrow), out[s : s + per].numpy())
+        _run(k.pair_sums, c, n, m, _np(d), _np(t), _np(sh), _np(clip[s : s + per]), un, vn, wn, float(eps),
+             _np(fr), _np(vrow), out[s : s + per].numpy())
     return out
 
 
@@ -200,12 +211,11 @@ def fan_sums(
         tri = torch.stack([poly[:, 0], poly[:, k], poly[:, k + 1], poly[:, k + 1]], dim=1)
         if fused:
             kern = _kernels()
-            _threads()
             fr, vrow = _visible_rows(need, vis, lambda r: tri[r], u, v, dom, tgt)  # noqa: B023
             out = torch.empty(poly.shape[0], dtype=torch.float64)
             count = torch.full((poly.shape[0],), target.shape[1], dtype=torch.int64)
-            kern.polygon_sums(_np(tri), _np(normal), _np(target), _np(count), _np(u), _np(v), _np(w), _np(fr),
-                              _np(vrow), out.numpy())
+            _run(kern.polygon_sums, _np(tri), _np(normal), _np(target), _np(count), _np(u), _np(v), _np(w), _np(fr),
+                 _np(vrow), out.numpy())
             total += out
             continue
         x, jac = bilinear(tri, u, v)
