@@ -304,3 +304,20 @@ def test_dark_scene_is_not_refined_when_one_solve_meets_the_target(groove):
     assert rep.iterations == 0 and rep.leaves == groove.num_facets and rep.reached
     actual = _rel_rms(out.irradiance[:, 0], ref)
     assert actual <= rep.estimated <= 1e-2
+
+
+def test_refinement_steps_reuse_the_kernel_of_unchanged_leaves():
+    """``accuracy.kernel.leaf_kernel`` copies the kept × kept block and integrates only the pairs with a new leaf:
+    equal to the kernel computed from scratch (measured max difference 1e-18 on a V-groove)."""
+    from torch_interreflect.accuracy.kernel import leaf_kernel
+    from torch_interreflect.accuracy.leaves import Leaves, split
+
+    scene = ti.scenes.v_groove(30.0, divisions=4, dtype=D)
+    K0 = ti.form_factors(scene, tol=1e-4)
+    sel = torch.zeros(scene.num_facets, dtype=torch.bool)
+    sel[::3] = True
+    leaves = split(Leaves(scene, torch.arange(scene.num_facets)), sel)
+    assert leaves.kept is not None and leaves.kept.numel() == int((~sel).sum())
+    K = leaf_kernel(leaves.scene, 1e-4, K0, leaves.kept)
+    assert K.info["reused_entries"] > 0
+    torch.testing.assert_close(K.to_dense(), ti.form_factors(leaves.scene, tol=1e-4).to_dense(), rtol=0, atol=1e-15)

@@ -20,10 +20,10 @@ from tqdm.auto import tqdm
 
 from ..camera.sensor import Camera
 from ..formfactors.operator import FormFactors
-from ..formfactors.quadrature import form_factors as compute_form_factors
 from ..geometry.scene import Scene
 from ..solver.api import solve
 from . import apriori
+from .kernel import leaf_kernel
 from .leaves import Leaves, light_check, light_factor, relative_change, rms, select, split, to_user
 from .wavelengths import interp_matrix, nested_subsets
 
@@ -129,7 +129,7 @@ def _start(pb: Problem) -> Refinement:
 def _kernel_and_light(pb: Problem, st: Refinement) -> None:
     """Form factors and light factor of the current leaves (and which user facets rest on ray casting)."""
     t = time.perf_counter()
-    st.K = compute_form_factors(st.leaves.scene, tol=pb.quadrature_tol, progress=False)
+    st.K = leaf_kernel(st.leaves.scene, pb.quadrature_tol, st.K, st.leaves.kept)
     occ = st.K.info.get("occluded_facets")
     if occ is not None and bool(occ.any()):  # user facets whose rows rest on ray-cast visibility
         st.sampled[st.leaves.user.cpu()[occ.cpu()]] = True
