@@ -39,10 +39,13 @@ class Leaves:
     Attributes:
         scene: The refined scene (``n`` leaves).
         user: User facet of each leaf. Shape ``[n]``.
+        kept: After :func:`split`: the indices, among the previous leaves, of the first ``len(kept)`` leaves
+            (unchanged by the split; their form factors can be reused). Shape ``[m]``.
     """
 
     scene: Scene
     user: Tensor
+    kept: Tensor | None = None
 
 
 def subset(scene: Scene, idx: Tensor) -> Scene:
@@ -66,7 +69,7 @@ def split(leaves: Leaves, sel: Tensor) -> Leaves:
         mat,
         sc.material_names,
     )
-    return Leaves(scene, leaves.user[torch.cat([idx_keep, idx_sel[par]])])
+    return Leaves(scene, leaves.user[torch.cat([idx_keep, idx_sel[par]])], idx_keep)
 
 
 def to_user(values: Tensor, leaves: Leaves, num_user: int) -> Tensor:

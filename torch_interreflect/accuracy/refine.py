@@ -20,9 +20,10 @@ from tqdm.auto import tqdm
 
 from ..camera.sensor import Camera
 from ..formfactors.operator import FormFactors
-from ..formfactors.quadrature import form_factors as compute_form_factors
 from ..geometry.scene import Scene
 from ..solver.api import solve
+from . import apriori
+from .kernel import leaf_kernel
 from .leaves import Leaves, light_check, light_factor, relative_change, rms, select, split, to_user
 from .wavelengths import interp_matrix, nested_subsets
 
@@ -128,7 +129,7 @@ def _start(pb: Problem) -> Refinement:
 def _kernel_and_light(pb: Problem, st: Refinement) -> None:
     """Form factors and light factor of the current leaves (and which user facets rest on ray casting)."""
     t = time.perf_counter()
-    st.K = compute_form_factors(st.leaves.scene, quadrature_tol=pb.quadrature_tol, progress=False)
+    st.K = leaf_kernel(st.leaves.scene, pb.quadrature_tol, st.K, st.leaves.kept)
     occ = st.K.info.get("occluded_facets")
     if occ is not None and bool(occ.any()):  # user facets whose rows rest on ray-cast visibility
         st.sampled[st.leaves.user.cpu()[occ.cpu()]] = True
@@ -174,6 +175,11 @@ def _solve_level(pb: Problem, st: Refinement) -> Tensor:
         st.h = pb.solve_gain(st.K, refl_leaf[..., st.nodes], st.g)  # type: ignore[arg-type]
     if st.light_error is None:  # level 0 (the leaves are the user's facets): the ray-cast light's error
         st.light_error = _light_error(pb, st, refl_leaf)
+    if st.iterations == 0:  # the leaves are the user's facets: the a-priori estimate of their error
+        t = time.perf_counter()
+        r_nodes = refl_leaf[..., st.nodes]
+        st.est = apriori.estimate(st.leaves.scene, st.K, r_nodes, st.g, st.h, pb.light)  # type: ignore[arg-type]
+        pb.seconds["estimate"] = time.perf_counter() - t
     vals = pb.rgb_of(st.h, st.nodes, refl_leaf) if pb.camera is not None else st.h * pb.S[..., None, st.nodes]
     return to_user(vals, st.leaves, pb.F)
 

@@ -1,0 +1,119 @@
+"""An a-priori estimate of the discretisation error of one solve, from the irradiance at the facets' corners.
+
+The piecewise-constant model is exact except that it lets every source facet ``j`` send its *average* radiosity,
+while facet ``i`` sees ``j`` through a kernel that is not uniform over ``j``. With ``E(y)`` the true irradiance,
+the error ``e`` of the solved facet averages obeys ``(I − F R) e = F R δ`` with ``|δ_ij| ≤ osc_j = max_{y ∈ j}
+|E(y) − Ē_j|``, so ``|e| ≤ (I − F R)⁻¹ F R osc`` componentwise (all terms are non-negative). :func:`estimate`
+evaluates ``E`` at the corners of every facet (nudged inside) by one exact gather from the solved facets (Lambert's
+point-to-polygon formula with occlusion, :func:`torch_interreflect.camera.point_form_factors`, and the light at the
+point), takes ``osc`` from those values and solves once more with the same form factors.
+
+The bound would hold with the true ``osc``; the gather from a coarse solution estimates it. Against converged
+Mitsuba and extrapolated fine solutions (V-grooves at 30° and 45°, a box corner, a W shape, the Cornell box under
+a sky, r = 0.2 to 0.95, 2 to 200 facets) the RMS of the bound is 2.5–15× the actual RMS error (:data:`KAPPA` times
+the bound is what is reported: still ≥ 1.25× the actual RMS error in every case, and above the actual error on
+≥ 94 % of the facets). It costs about one gather of ``4 F`` points (1–2 level-0 kernels), against the ``16×``
+larger kernel of a forced first split.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import torch
+from torch import Tensor
+
+from ..camera.gather import point_form_factors
+from ..formfactors.operator import FormFactors
+from ..geometry.raycast import RayCaster
+from ..geometry.scene import Scene
+from ..solver.api import solve
+
+__all__ = ["KAPPA", "estimate"]
+
+#: Share of the bound ``(I − F R)⁻¹ F R osc`` reported as the estimate (measured: the actual RMS error is
+#: 0.07–0.4 of the bound, and 0.67 of it on the 16-facet Cornell box at r = 0.2, where the sky's sampling error
+#: dominates).
+KAPPA = 0.5
+
+#: Visibility rays per side of a target facet for the gather at the corners (``samples²`` per blockable pair).
+GATHER_SAMPLES = 3
+
+
+def _corner_points(scene: Scene) -> tuple[Tensor, Tensor]:
+    """The corners of every facet, moved ``1e-6`` of the way toward its centroid (off the neighbours' edges).
+
+    Shape: ``points [4 F, 3]`` (float64, CPU), ``facet [4 F]``.
+    """
+    sc = scene.to(torch.float64).to("cpu")
+    corners = sc.corners
+    x = corners + 1e-6 * (sc.centroids[:, None, :] - corners)
+    return x.reshape(-1, 3), torch.arange(sc.num_facets).repeat_interleave(corners.shape[1])
+
+
+def _direct_at(light: Any, scene: Scene, x: Tensor, facet: Tensor, factors: Tensor, covered: Tensor,
+               g: Tensor) -> Tensor:
+    """The light's geometric factor at the points ``[P]`` (float64): the sky from the open part of each point's
+    hemisphere, a sun by one shadow ray per point, an area light through the point form factors; a factor given
+    per facet (or anything else) is taken as constant over the facet."""
+    sc = scene.to(torch.float64).to("cpu")
+    g64 = g.detach().to(torch.float64).cpu()
+    if isinstance(light, str) and light == "sky":
+        return math.pi * (1.0 - covered).clamp_min(0.0)
+    if isinstance(light, str) and light == "uniform":
+        return torch.ones(x.shape[0], dtype=torch.float64)
+    t = light if isinstance(light, Tensor) else None
+    if t is None and not isinstance(light, str):
+        t = torch.as_tensor(light)
+    if t is not None and t.numel() == 3 and t.ndim == 1 and t.is_floating_point() and sc.num_facets != 3:
+        d = t.detach().to(torch.float64).cpu()
+        d = d / d.norm()
+        cos = (-(sc.normals @ d)).clamp_min(0.0)[facet]
+        lit = cos > 0
+        out = torch.zeros(x.shape[0], dtype=torch.float64)
+        if bool(lit.any()):
+            caster = RayCaster(sc)  # from a bit further inside: a corner's ray would graze the neighbours
+            inside = x[lit] + 1e-3 * (sc.centroids[facet[lit]] - x[lit])
+            origin = inside + caster.eps * sc.normals[facet[lit]]
+            hit = caster.first_hit(origin.numpy(), (-d).expand(origin.shape[0], 3).numpy())
+            out[lit] = cos[lit] * torch.from_numpy(hit < 0).to(torch.float64)
+        return out
+    if t is not None and t.dtype == torch.bool and t.shape == (sc.num_facets,):
+        return math.pi * torch.sparse.mm(factors, t.to(torch.float64)[:, None]).reshape(-1)
+    return g64[facet]
+
+
+@torch.no_grad()
+def estimate(scene: Scene, K: FormFactors, refl: Tensor, g: Tensor, h: Tensor, light: Any) -> Tensor:
+    """:data:`KAPPA` times the bound ``(I − F R)⁻¹ F R osc`` of the discretisation error, relative, per facet.
+
+    Args:
+        scene: The solved scene (``n`` facets). K: Its form factors.
+        refl: Reflectance per facet and column. Shape ``[..., n, C]``.
+        g: The light's geometric factor per facet. Shape ``[n]``.
+        h: The solved gain ``(I − F R) h = g``. Shape ``[..., n, C]``.
+        light: The light as :func:`~torch_interreflect.accuracy.render` takes it (``"uniform"``, ``"sky"``, a
+            direction, a mask ``[n]``, a factor ``[n]``): the light at the corners is evaluated from it.
+
+    Returns:
+        Estimated relative error per facet, the largest over the columns (float64, CPU). Shape ``[n]``.
+    """
+    n = scene.num_facets
+    x, facet = _corner_points(scene)
+    factors, covered, _ = point_form_factors(scene, x, facet, samples=GATHER_SAMPLES)
+    e0 = _direct_at(light, scene, x, facet, factors, covered, g)  # [P]
+    h64 = h.detach().to(torch.float64).cpu()
+    r64 = refl.detach().to(torch.float64).cpu().expand_as(h64)
+    rh = (r64 * h64).movedim(-2, 0)  # [n, ..., C]
+    at = e0[:, None] + torch.sparse.mm(factors, rh.reshape(n, -1))  # gather of the solved radiosity [P, B]
+    hh = h64.movedim(-2, 0).reshape(n, -1)
+    osc = (at.reshape(n, x.shape[0] // n, -1) - hh[:, None, :]).abs().amax(1)  # [n, B]
+    osc = osc.reshape(rh.shape).movedim(0, -2)  # [..., n, C]
+    K64 = K.to(torch.float64) if K.dtype != torch.float64 else K
+    K64 = K64.to("cpu") if K64.device.type != "cpu" else K64
+    local = K64.matmul(r64 * osc)
+    bound = solve(K64, r64, local, tol=1e-3) if bool(local.any()) else local
+    rel = bound.abs() / h64.abs().clamp_min(1e-300)
+    rel = rel.movedim(-2, 0).reshape(n, -1)
+    return KAPPA * (rel.amax(1) if rel.shape[1] else rel.new_zeros(n))
