@@ -99,9 +99,9 @@ def refine_illuminant(
     init_rgb: Tensor,
     *,
     bounces: int | None = None,
-    prior_weight: float = 1e-3,
+    prior_weight: float = 1e-6,
     reflectance_components: int = 6,
-    steps: int = 60,
+    steps: int = 150,
     tol: float = 1e-6,
 ) -> RefinedIlluminant:
     """Refine ``init_rgb`` by re-rendering ``image`` through the interreflection model (module docstring).
