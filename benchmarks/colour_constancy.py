@@ -7,9 +7,9 @@
 ``--study``: ``interreflect train-cc`` with ``--seeds`` training seeds on one generated data set (the held-out
 split is the last 20 % of the scenes), then per held-out image and seed the angular errors of every method, and of
 the geometry refinement (:func:`torch_interreflect.training.refine_illuminant`) started from the physics-informed
-network with infinite bounces, and (first seed) two-bounce and direct-only models as ablations. Differences
-between methods are paired per image (errors averaged over the seeds first) and given with percentile-bootstrap
-95 % intervals (10,000 resamples of the images). FFCC summaries per method and seed.
+network and from the ∞-bounce FC4 with infinite bounces, and (first seed) two-bounce and direct-only models as
+ablations. Differences between methods are paired per image (errors averaged over the seeds first) and given with
+percentile-bootstrap 95 % intervals (10,000 resamples of the images). FFCC summaries per method and seed.
 
 Usage::
 
@@ -106,22 +106,23 @@ def study(args: argparse.Namespace, out: Path) -> str:
         test = GeneratedDataset(args.data, None, test_idx, geometry=True)
         if seed == 0:
             for name, fn in BASELINES.items():
-                e = [float(angular_error(fn(it["image"][None])[0], it["illuminant"])) for it in test]
+                e = [float(angular_error(fn(it["image"][None], it["mask"][None])[0], it["illuminant"]))
+                     for it in test]
                 errors[name] = [np.array(e)] * args.seeds
         labels = {"fc4_direct": "FC4, direct-only data", "fc4_inf": "FC4, ∞-bounce data",
                   "physics": "physics-informed (network)"}
-        starts = None
+        starts = {}
         for key, label in labels.items():
-            e, preds = _net_errors(cfg.out_dir / f"{key}.pt", test)
+            e, starts[key] = _net_errors(cfg.out_dir / f"{key}.pt", test)
             errors.setdefault(label, []).append(e)
-            starts = preds if key == "physics" else starts
         t = time.perf_counter()
-        variants = [(None, "physics + geometry refinement, ∞ bounces")]
+        variants = [("physics", None, "physics + geometry refinement, ∞ bounces"),
+                    ("fc4_inf", None, "FC4 ∞ + geometry refinement, ∞ bounces")]
         if seed == 0:
-            variants += [(2, "physics + geometry refinement, 2 bounces (seed 0)"),
-                         (1, "physics + geometry refinement, direct only (seed 0)")]
-        for b, label in variants:
-            errors.setdefault(label, []).append(_refined_errors(cfg.out_dir / "physics.pt", test, starts, b))
+            variants += [("physics", 2, "physics + geometry refinement, 2 bounces (seed 0)"),
+                         ("physics", 1, "physics + geometry refinement, direct only (seed 0)")]
+        for key, b, label in variants:
+            errors.setdefault(label, []).append(_refined_errors(cfg.out_dir / f"{key}.pt", test, starts[key], b))
         seconds[f"refine seed {seed}"] = time.perf_counter() - t
     seconds["total"] = time.perf_counter() - t_all
     return _report(args, errors, seconds, len(test) if test is not None else 0, out)
@@ -139,7 +140,8 @@ def _report(args: argparse.Namespace, errors: dict[str, list[np.ndarray]], secon
     pairs = [("physics-informed (network)", "FC4, ∞-bounce data"),
              ("FC4, ∞-bounce data", "FC4, direct-only data"),
              ("physics + geometry refinement, ∞ bounces", "physics-informed (network)"),
-             ("physics + geometry refinement, ∞ bounces", "FC4, ∞-bounce data")]
+             ("physics + geometry refinement, ∞ bounces", "FC4, ∞-bounce data"),
+             ("FC4 ∞ + geometry refinement, ∞ bounces", "FC4, ∞-bounce data")]
     e0 = {m: v[0] for m, v in errors.items()}
     pairs0 = [("physics + geometry refinement, ∞ bounces", "physics + geometry refinement, 2 bounces (seed 0)"),
               ("physics + geometry refinement, ∞ bounces", "physics + geometry refinement, direct only (seed 0)")]

@@ -74,7 +74,8 @@ def illuminant_library(
     Families (:data:`ILLUMINANT_FAMILIES`): CIE daylight on ``daylight_cct`` (start, stop, step in K), blackbodies
     on ``blackbody_t``, CIE F1–F12, FL3.1–FL3.15, LED-B1…B5, BH1, RGB1, V1, V2, HP1–HP5, other CIE tables (A, B, C,
     E, ID50, ID65, ISO 7589) and colour-science's measured light sources (``colour.SDS_LIGHT_SOURCES``: 56 lamps,
-    from sodium and mercury lamps to RGB LEDs). Tables are repeated outward beyond 380–780 nm.
+    from sodium and mercury lamps to RGB LEDs). Tables are repeated outward beyond 380–780 nm; a spectrum that is
+    zero on every grid point (a line lamp on a coarse grid) is left out.
 
     Args:
         wavelengths: Grid in nm. Shape ``[L]``.
@@ -107,6 +108,7 @@ def illuminant_library(
             fam = "other CIE"
         out.append((fam, name, _named(name, wl)))
     out += [("measured lamps", name, s) for name, s in _measured_lamps(wl)]
+    out = [o for o in out if float(o[2].max()) > 0.0]  # a coarse grid can miss every line of a sodium lamp
     spectra = torch.stack([s for _, _, s in out])
     spectra = spectra / spectra.mean(-1, keepdim=True)
     return spectra, [n for _, n, _ in out], [f for f, _, _ in out]
