@@ -9,6 +9,7 @@ from collections.abc import Sequence
 
 from ..training.argtypes import positive_float, positive_int
 from ..training.commands import ArgumentParser, add_generate_parser, add_train_parser, run_command
+from .predict import add_predict_parser
 
 __all__ = ["main"]
 
@@ -52,7 +53,7 @@ def _angle(text: str) -> float:
 
 
 def build_parser() -> ArgumentParser:
-    """The parser of ``interreflect`` (sub-commands ``demo``, ``generate``, ``train-cc``)."""
+    """The parser of ``interreflect`` (sub-commands ``demo``, ``generate``, ``train-cc``, ``predict``)."""
     parser = ArgumentParser(prog="interreflect", description=__doc__)
     parser.add_argument("--debug", action="store_true", help="show the full traceback of an error")
     sub = parser.add_subparsers(dest="command", required=True, parser_class=ArgumentParser)
@@ -67,6 +68,7 @@ def build_parser() -> ArgumentParser:
     p.set_defaults(func=_demo)
     add_generate_parser(sub)
     add_train_parser(sub)
+    add_predict_parser(sub)
     return parser
 
 

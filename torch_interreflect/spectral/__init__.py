@@ -4,6 +4,7 @@
 - :mod:`.data`: :func:`illuminant`, :func:`blackbody`, :func:`colorchecker`, :func:`reflectance`,
   :func:`camera_sensitivities` (sampled from colour-science on any grid, cached).
 - :mod:`.illuminants`: the CIE daylight basis, daylight from a CCT, Planck (differentiable).
+- :mod:`.illuminant_basis`: a non-negative basis for any illuminant (daylight, blackbody, fluorescent, LED, lamps).
 - :mod:`.reflectances`: measured reflectance sets, PCA bases, Mallett 2019 RGB → spectrum (differentiable).
 """
 
@@ -22,6 +23,14 @@ from .data import (
     sample_spd,
 )
 from .grid import check_wavelengths, integration_weights, wavelengths
+from .illuminant_basis import (
+    ILLUMINANT_FAMILIES,
+    coefficients_from_illuminant,
+    fit_illuminant_basis,
+    illuminant_basis,
+    illuminant_from_coefficients,
+    illuminant_library,
+)
 from .illuminants import CCT_RANGE, cct_to_daylight_coefficients, daylight, daylight_basis, daylight_from_cct, planck
 from .reflectances import (
     coefficients_from_reflectance,
@@ -37,18 +46,24 @@ __all__ = [
     "CCT_RANGE",
     "COLORCHECKER",
     "D_SERIES_CCT_RANGE",
+    "ILLUMINANT_FAMILIES",
     "REFLECTANCE_ALIASES",
     "blackbody",
     "camera_sensitivities",
     "cct_to_daylight_coefficients",
     "check_wavelengths",
+    "coefficients_from_illuminant",
     "coefficients_from_reflectance",
     "colorchecker",
     "daylight",
     "daylight_basis",
     "daylight_from_cct",
+    "fit_illuminant_basis",
     "fit_reflectance_basis",
     "illuminant",
+    "illuminant_basis",
+    "illuminant_from_coefficients",
+    "illuminant_library",
     "illuminant_names",
     "illuminants",
     "integration_weights",

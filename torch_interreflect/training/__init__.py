@@ -8,6 +8,9 @@
 - Metrics: :func:`angular_error`, :func:`angular_loss`, :func:`summarize` (mean, median, tri-mean, best/worst 25 %).
 - Baselines: :func:`grey_world`, :func:`white_patch`, :func:`grey_edge`.
 - Models: :class:`FC4Net`, :class:`PhysicsInformedNet`, :func:`physics_loss`.
+- Inference: :func:`load_estimator` → :class:`IlluminantEstimator` (``predict(image, geometry=None)``),
+  :func:`save_estimator`; with geometry, :func:`refine_illuminant` (analysis by synthesis through the
+  interreflection model, :mod:`.refine`). Representation floors of the illuminant model: :mod:`.floors`.
 - Recipe: :func:`run_train_cc` / :class:`TrainConfig` (``interreflect train-cc``).
 - Commands: :mod:`.commands` (``generate``, ``train-cc``; one-line errors, exit status 2 for usage errors).
 """
@@ -16,6 +19,7 @@ from .baselines import BASELINES, grey_edge, grey_world, white_patch
 from .commands import add_generate_parser, add_train_parser, main_generate, main_train
 from .config import GeneratorConfig, shard_indices
 from .datasets import GeneratedDataset, RenderedDataset, collate, split_indices
+from .estimator import CheckpointError, IlluminantEstimator, load_estimator, make_network, save_estimator
 from .generator import GenerateResult, generate
 from .metrics import angular_error, angular_loss, format_table, summarize
 from .models import FC4Net, PhysicsInformedNet, physics_loss
@@ -28,6 +32,7 @@ from .random_scenes import (
     random_scene,
     random_view,
 )
+from .refine import RefinedIlluminant, refine_illuminant
 from .sample import Sample, render_sample
 from .storage import is_complete, load_geometry, read_png
 from .train import TrainConfig, evaluate, run_train_cc, train_model
@@ -36,11 +41,14 @@ __all__ = [
     "BASELINES",
     "ILLUMINANT_KINDS",
     "SCENE_KINDS",
+    "CheckpointError",
     "FC4Net",
     "GenerateResult",
     "GeneratedDataset",
     "GeneratorConfig",
+    "IlluminantEstimator",
     "PhysicsInformedNet",
+    "RefinedIlluminant",
     "RenderedDataset",
     "Sample",
     "TrainConfig",
@@ -55,9 +63,11 @@ __all__ = [
     "grey_edge",
     "grey_world",
     "is_complete",
+    "load_estimator",
     "load_geometry",
     "main_generate",
     "main_train",
+    "make_network",
     "physics_loss",
     "random_illuminant",
     "random_light",
@@ -65,8 +75,10 @@ __all__ = [
     "random_scene",
     "random_view",
     "read_png",
+    "refine_illuminant",
     "render_sample",
     "run_train_cc",
+    "save_estimator",
     "shard_indices",
     "split_indices",
     "summarize",

@@ -10,7 +10,8 @@ The recipe (:func:`run_train_cc`):
    images; train the physics-informed model (:class:`~.models.PhysicsInformedNet`, angular + reconstruction
    loss through the interreflection solve) on ∞-bounce images with their geometry;
 5. test all of them on the held-out ∞-bounce images and write one table (``results.md``, ``results.json``) and the
-   model weights to ``--out``.
+   checkpoints (:func:`~.estimator.save_estimator`: configuration, library version and weights; load them with
+   :func:`~.estimator.load_estimator`) to ``--out``.
 
 Distributed: run the same command under ``torchrun --nproc-per-node N -m torch_interreflect.cli train-cc …``;
 the script reads ``RANK`` / ``WORLD_SIZE`` (set by torchrun, SLURM wrappers, ...), joins a ``gloo`` process group
@@ -33,13 +34,13 @@ import torch
 from torch import Tensor, nn
 from torch.utils.data import DataLoader, Dataset
 
-from .. import spectral
 from .._deprecation import moved_attribute
 from .baselines import BASELINES
 from .datasets import GeneratedDataset, collate, split_indices
+from .estimator import make_network, save_estimator
 from .generator import GeneratorConfig, generate, is_complete, read_config
 from .metrics import angular_error, format_table, summarize
-from .models import FC4Net, PhysicsInformedNet, physics_loss
+from .models import physics_loss
 
 __all__ = ["WEIGHT_FILES", "TrainConfig", "evaluate", "run_train_cc", "train_model"]
 
@@ -300,16 +301,19 @@ def _net_estimator(model: nn.Module) -> Callable[[Tensor, Tensor], Tensor]:
     return fn
 
 
-def _runs(cfg: TrainConfig, gen: GeneratorConfig) -> list[tuple[str, str, Callable[[], nn.Module], Any, int]]:
-    """``(label, key, make model, variant, epochs)`` of each model to train."""
-    wl = spectral.wavelengths(*gen.wavelengths)
-    runs: list[tuple[str, str, Callable[[], nn.Module], Any, int]] = []
+def _runs(cfg: TrainConfig, gen: GeneratorConfig) -> list[tuple[str, str, dict[str, Any], Any, int]]:
+    """``(label, key, network config, variant, epochs)`` of each model to train (:func:`~.estimator.make_network`)."""
+    common = {"width": cfg.width, "camera": gen.camera, "wavelengths": list(gen.wavelengths), "percentile": 99.0}
+    fc4 = {"kind": "fc4", **common}
+    runs: list[tuple[str, str, dict[str, Any], Any, int]] = []
     if 1 in gen.bounces:
-        runs.append(("FC4-style CNN, trained on direct-only", "fc4_direct", lambda: FC4Net(cfg.width), 1, cfg.epochs))
-    runs.append(("FC4-style CNN, trained on ∞-bounce", "fc4_inf", lambda: FC4Net(cfg.width), None, cfg.epochs))
+        runs.append(("FC4-style CNN, trained on direct-only", "fc4_direct", {**fc4, "trained_on": "direct-only"}, 1,
+                     cfg.epochs))
+    runs.append(("FC4-style CNN, trained on ∞-bounce", "fc4_inf", {**fc4, "trained_on": "inf"}, None, cfg.epochs))
     if gen.geometry and cfg.physics_epochs > 0:
-        runs.append(("Physics-informed (∞-bounce + re-rendering)", "physics",
-                     lambda: PhysicsInformedNet(wl, gen.camera, width=cfg.width), "physics", cfg.physics_epochs))
+        phys = {"kind": "physics", **common, "illuminant_components": 12, "reflectance_components": 3,
+                "trained_on": "inf + re-rendering"}
+        runs.append(("Physics-informed (∞-bounce + re-rendering)", "physics", phys, "physics", cfg.physics_epochs))
     return runs
 
 
@@ -317,9 +321,9 @@ def _train_all(cfg: TrainConfig, gen: GeneratorConfig, dist: _Dist, train_idx: l
                summaries: dict, seconds: dict) -> dict[str, list[dict[str, float]]]:
     history: dict[str, list[dict[str, float]]] = {}
     out = cfg.out_dir
-    for label, key, make, variant, epochs in _runs(cfg, gen):
+    for label, key, net_config, variant, epochs in _runs(cfg, gen):
         torch.manual_seed(cfg.seed)  # DistributedDataParallel broadcasts rank 0's initial weights anyway
-        model = make()
+        model = make_network(net_config)
         physics = variant == "physics"
         local = _InMemory(GeneratedDataset(cfg.data, None if physics else variant, train_idx, geometry=physics))
         t0 = time.perf_counter()
@@ -330,7 +334,7 @@ def _train_all(cfg: TrainConfig, gen: GeneratorConfig, dist: _Dist, train_idx: l
         if dist.main:
             summaries[label] = summarize(evaluate(_net_estimator(model), test))
             out.mkdir(parents=True, exist_ok=True)
-            torch.save(model.state_dict(), out / f"{key}.pt")
+            save_estimator(model, {**net_config, "seed": cfg.seed, "generator": gen.to_json()}, out / f"{key}.pt")
         dist.barrier()
     return history
 

@@ -1,0 +1,180 @@
+"""The physics at inference: refine an illuminant estimate by analysis by synthesis when the geometry is known.
+
+Given an image, the scene's geometry (form factors ``F``, light factor ``g``, pixel × facet coverage and the
+material index of every facet; the ``_geometry.npz`` of the generator, or any RGB-D / synthetic scene reduced to
+these) and a starting estimate (a network's), :func:`refine_illuminant` finds the illuminant spectrum ``S``
+(any-illuminant basis, :func:`~torch_interreflect.spectral.illuminant_basis`) and one reflectance per material
+(reflectance PCA basis, clipped to [0.01, 0.95]) that best re-render the image:
+
+``min  ‖s · P(S, R) − I‖² / ‖I‖²  +  λ ‖c − c₀‖² / K  +  μ ‖a‖² / (M K_r)``,
+
+``P = coverage · camera(R E / π)``, ``(I − F R) E = g ⊗ S`` solved exactly (``bounces=None``), or with one
+(direct only) or two bounces as ablations; ``s`` is the best scale in closed form, ``c₀`` the code of the starting
+estimate (a weak prior: the image alone cannot tell ``S · a`` from ``R / a`` where there is no interreflection,
+Funt & Drew's mutual-illumination argument; with interreflection the bounced light, ``∝ S R²``, can). L-BFGS on
+``(c, a)``, differentiable through the solve's adjoint.
+
+The true reflectances in a geometry file are never read.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import Any
+
+import torch
+import torch.nn.functional as nnf
+from torch import Tensor
+
+from .. import spectral
+from ..camera.sensor import Camera
+from ..solver.api import radiance, solve
+
+__all__ = ["RefinedIlluminant", "code_for_rgb", "refine_illuminant"]
+
+
+@dataclasses.dataclass
+class RefinedIlluminant:
+    """Result of :func:`refine_illuminant`.
+
+    Attributes:
+        rgb: Unit-norm illuminant camera RGB ``[3]``.
+        spectrum: Relative spectrum ``[L]`` (mean about 1).
+        reflectance: One reflectance per material ``[M, L]``.
+        residual: Relative RMS error of the re-rendered image (after the best scale).
+        start_residual: The same for the starting estimate (reflectances fitted with the illuminant fixed).
+        iterations: L-BFGS function evaluations.
+    """
+
+    rgb: Tensor
+    spectrum: Tensor
+    reflectance: Tensor
+    residual: float
+    start_residual: float
+    iterations: int
+
+
+def _camera(camera: str | Camera, wl: Tensor) -> Camera:
+    if isinstance(camera, Camera):
+        return camera
+    try:
+        return Camera.from_colour(camera, wl)
+    except ValueError:
+        return Camera.from_colour(camera, wl, extrapolate="zero")
+
+
+def code_for_rgb(rgb: Tensor, basis: tuple[Tensor, Tensor, Tensor], camera: Camera, *, steps: int = 50) -> Tensor:
+    """Basis code ``[K]`` whose camera RGB has the direction of ``rgb [3]`` (smallest code; L-BFGS from 0)."""
+    target = nnf.normalize(rgb.detach().to(torch.float64), dim=-1)
+    mean, comps, scale = (t.to(torch.float64) for t in basis)
+    code = torch.zeros(comps.shape[0], dtype=torch.float64, requires_grad=True)
+    opt = torch.optim.LBFGS([code], max_iter=steps, line_search_fn="strong_wolfe")
+
+    def closure() -> Tensor:
+        opt.zero_grad()
+        spd = spectral.illuminant_from_coefficients(code, mean, comps, scale)
+        est = nnf.normalize(camera(spd[None].to(camera.sensitivities.dtype))[0].to(torch.float64), dim=-1)
+        loss = (est - target).pow(2).sum() + 1e-4 * code.pow(2).mean()
+        loss.backward()
+        return loss
+
+    opt.step(closure)
+    return code.detach()
+
+
+def _problem(image: Tensor, geometry: dict[str, Any]) -> tuple[Tensor, Tensor, Tensor]:
+    """``(coverage [P, F], observed [P, 3], facet material [F])`` over the pixels that see a facet."""
+    cov = geometry["coverage"]
+    cov = (cov.to_dense() if cov.layout != torch.strided else cov).to(torch.float64)
+    obs = image.detach().to(torch.float64).reshape(3, -1).T
+    keep = cov.sum(1) > 1e-9
+    return cov[keep], obs[keep], geometry["material"].long()
+
+
+def refine_illuminant(
+    estimator: Any,
+    image: Tensor,
+    geometry: dict[str, Any],
+    init_rgb: Tensor,
+    *,
+    bounces: int | None = None,
+    prior_weight: float = 1e-6,
+    reflectance_components: int = 6,
+    steps: int = 150,
+    tol: float = 1e-6,
+) -> RefinedIlluminant:
+    """Refine ``init_rgb`` by re-rendering ``image`` through the interreflection model (module docstring).
+
+    Args:
+        estimator: An :class:`~.estimator.IlluminantEstimator` (its ``config`` gives the camera and grid; a
+            physics-informed network lends its illuminant basis), or a dict ``{"camera", "wavelengths"}``.
+        image: Linear camera RGB. Shape ``[3, H, W]``.
+        geometry: The dict of :func:`~.storage.load_geometry` (``reflectance`` is not used).
+        init_rgb: Starting estimate. Shape ``[3]``.
+        bounces: ``None`` (infinite), ``1`` (direct only) or ``2``.
+        prior_weight: ``λ``, the pull towards the starting code.
+        reflectance_components: ``K_r``.
+        steps: L-BFGS iterations.
+        tol: Relative residual of the solves.
+
+    Returns:
+        A :class:`RefinedIlluminant`.
+    """
+    config = estimator if isinstance(estimator, dict) else estimator.config
+    wl = spectral.wavelengths(*config["wavelengths"], dtype=torch.float64)
+    cam = _camera(config["camera"], wl)
+    net = getattr(estimator, "network", None)
+    if net is not None and hasattr(net, "ill_mean"):
+        basis = (net.ill_mean, net.ill_components, net.ill_scale)
+    else:
+        basis = spectral.illuminant_basis(wl, config["camera"])
+    basis = tuple(t.detach().to(torch.float64) for t in basis)
+    data = spectral.reflectance_data(wl)
+    r_mean, r_comps = spectral.fit_reflectance_basis(data, reflectance_components)
+    r_sigma = ((data - r_mean) @ r_comps.T).std(0)
+    cov, obs, material = _problem(image, geometry)
+    obs = obs / obs.norm().clamp_min(1e-300)
+    ff, g = geometry["form_factors"], geometry["light_factor"].to(torch.float64)
+    n_mat = int(material.max()) + 1
+    c0 = code_for_rgb(init_rgb, basis, cam)
+
+    def render(code: Tensor, a: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        spd = spectral.illuminant_from_coefficients(code, *basis)
+        refl = (r_mean + (a * r_sigma) @ r_comps).clamp(0.01, 0.95)  # [M, L]
+        r_f = refl[material]
+        E = solve(ff, r_f, g[:, None] * spd[None, :], bounces=bounces, tol=tol)
+        rgb_f = cam(radiance(E, r_f).to(cam.sensitivities.dtype)).to(torch.float64)
+        return cov @ rgb_f, spd, refl
+
+    def misfit(pred: Tensor) -> Tensor:
+        s = (pred * obs).sum() / pred.pow(2).sum().clamp_min(1e-300)
+        return (s * pred - obs).pow(2).sum()
+
+    def fit(params: list[Tensor], code_of: Any, a_of: Any, iters: int) -> tuple[Tensor, int]:
+        opt = torch.optim.LBFGS(params, max_iter=iters, line_search_fn="strong_wolfe", tolerance_change=1e-12)
+        count = [0]
+
+        def closure() -> Tensor:
+            opt.zero_grad()
+            code, a = code_of(), a_of()
+            loss = (misfit(render(code, a)[0]) + prior_weight * (code - c0).pow(2).mean()
+                    + 1e-4 * a.pow(2).mean())
+            loss.backward()
+            count[0] += 1
+            return loss
+
+        opt.step(closure)
+        return code_of().detach(), count[0]
+
+    a = torch.zeros(n_mat, r_comps.shape[0], dtype=torch.float64, requires_grad=True)
+    fit([a], lambda: c0, lambda: a, max(10, steps // 3))  # reflectances for the starting illuminant first
+    with torch.no_grad():
+        start = math.sqrt(float(misfit(render(c0, a)[0])))
+    code = c0.clone().requires_grad_(True)
+    _, n = fit([code, a], lambda: code, lambda: a, steps)
+    with torch.no_grad():
+        pred, spd, refl = render(code, a)
+        rgb = nnf.normalize(cam(spd[None].to(cam.sensitivities.dtype))[0].to(torch.float64), dim=-1)
+        res = math.sqrt(float(misfit(pred)))
+    return RefinedIlluminant(rgb, spd.detach(), refl.detach(), res, start, n)
