@@ -6,12 +6,11 @@ import torch
 import torch_interreflect as ti
 from torch_interreflect.errors import DeviceError, ShapeError, ValueRangeError
 
-# Stated accuracy at the default eta = 0.5 (README "Large scenes", benchmarks/results/hierarchical.md): relative
-# RMS error of products and row sums of about 1-1.5 % at ~5,000 facets, less on smaller scenes (fewer far blocks).
-# These scenes give 0.2-0.5 % (products, row sums) and 0.1-0.7 % (E, open or r <= 0.7); the bounds below keep
-# the stated 1.5 %.
-PROD_RTOL = 0.015
-SOLVE_RTOL = 0.015
+# Measured on these scenes at eta = 0.5 (README "Large scenes" states about 1-1.5 % at ~5,000 facets): products
+# 0.31 % (Cornell) / 0.49 % (closed box), row sums 0.48 % RMS / 1.2 % max, E 0.17 % / 0.28 % (Cornell, r = 0.5 /
+# 0.9), 0.19 % (room, r = 0.7). The bounds are about 2x what was measured.
+PROD_RTOL = 0.01
+SOLVE_RTOL = 0.006
 
 
 def _rel_rms(a, b):
@@ -53,7 +52,7 @@ def test_closure_closed_box(box):
     _, _, hier = box
     rs = hier.row_sums()
     assert float((rs - 1).pow(2).mean().sqrt()) < PROD_RTOL
-    assert float((rs - 1).abs().max()) < 2 * PROD_RTOL
+    assert float((rs - 1).abs().max()) < 2.5 * PROD_RTOL
 
 
 def test_reciprocity(cornell):
@@ -109,7 +108,7 @@ def test_dtypes(dtype):
     E = ti.solve(hier, torch.full((sc.num_facets,), 0.5, dtype=dtype), torch.ones(sc.num_facets, 2, dtype=dtype))
     assert E.dtype == dtype
     # closed box, uniform light: E = E0 / (1 - r) up to the far-field error of the row sums
-    assert float((E - 2.0).abs().max()) < 2.0 * 2 * PROD_RTOL
+    assert float((E - 2.0).abs().max()) < 0.05  # measured 0.021 (float32), 0.016 (float64)
     h64 = hier.to(torch.float64)
     x = torch.rand(sc.num_facets, 2, dtype=torch.float64)
     assert torch.allclose(hier.matmul(x.to(dtype)).double(), h64.matmul(x), rtol=1e-4, atol=1e-6)
