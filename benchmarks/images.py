@@ -45,7 +45,7 @@ SAMPLES = 4
 def _open_room() -> ti.Scene:
     room = ti.scenes.room(divisions=2, lamp=False, dtype=torch.float64)
     keep = room.material != room.material_names.index("ceiling")
-    return ti.Scene._from_parts(room.corners[keep], room.is_triangle[keep], room.material[keep], room.material_names)
+    return ti.Scene.from_parts(room.corners[keep], room.is_triangle[keep], room.material[keep], room.material_names)
 
 
 def scenes() -> dict[str, dict]:

@@ -51,7 +51,7 @@ class Leaves:
 def subset(scene: Scene, idx: Tensor) -> Scene:
     """The facets ``idx`` of ``scene`` (corners, kind and material) as a scene."""
     mat = scene.material[idx] if scene.material is not None else None
-    return Scene._from_parts(scene.corners[idx], scene.is_triangle[idx], mat, scene.material_names)
+    return Scene.from_parts(scene.corners[idx], scene.is_triangle[idx], mat, scene.material_names)
 
 
 def split(leaves: Leaves, sel: Tensor) -> Leaves:
@@ -63,7 +63,7 @@ def split(leaves: Leaves, sel: Tensor) -> Leaves:
     mat = None
     if sc.material is not None:
         mat = torch.cat([sc.material[idx_keep], fine.material])
-    scene = Scene._from_parts(
+    scene = Scene.from_parts(
         torch.cat([sc.corners[idx_keep], fine.corners]),
         torch.cat([sc.is_triangle[idx_keep], fine.is_triangle]),
         mat,

@@ -64,7 +64,7 @@ def _detached(sc: Scene) -> Scene:
     """The scene without autograd history (visibility is a constant of the geometry)."""
     if not sc.corners.requires_grad:
         return sc
-    return Scene._from_parts(sc.corners.detach(), sc.is_triangle, sc.material, sc.material_names)
+    return Scene.from_parts(sc.corners.detach(), sc.is_triangle, sc.material, sc.material_names)
 
 
 class PointVisibility:

@@ -233,10 +233,25 @@ class Scene:
             self._material = self._material[k] if self._material is not None else None
 
     @classmethod
-    def _from_parts(
+    def from_parts(
         cls, corners: Tensor, is_triangle: Tensor, material: Tensor | None, material_names: list[str] | None
     ) -> Scene:
-        """Internal constructor that trusts its (already validated) inputs."""
+        """A scene from the parts of valid scenes (a subset, a detached copy, children of a subdivision), without
+        validating them again: planarity, convexity and duplicates are not checked.
+
+        Args:
+            corners: Facet corners in metres, a triangle repeating its last corner. Shape ``[F, 4, 3]``.
+            is_triangle: Which facets are triangles. Shape ``[F]`` bool.
+            material: Material index per facet ``[F]`` (int64), or ``None``.
+            material_names: Names of the materials, or ``None``.
+
+        Example:
+            >>> import torch_interreflect as ti
+            >>> box = ti.scenes.closed_box(divisions=1)
+            >>> floor = ti.Scene.from_parts(box.corners[:1], box.is_triangle[:1], box.material[:1], box.material_names)
+            >>> floor.num_facets
+            1
+        """
         self = cls.__new__(cls)
         self._corners = corners.contiguous()
         self._is_triangle = is_triangle
@@ -309,7 +324,7 @@ class Scene:
         c = self._corners.to(*args, **kwargs)
         dev = c.device
         mat = self._material.to(dev) if self._material is not None else None
-        return Scene._from_parts(c, self._is_triangle.to(dev), mat, self.material_names)
+        return Scene.from_parts(c, self._is_triangle.to(dev), mat, self.material_names)
 
     def __len__(self) -> int:
         return self.num_facets
@@ -379,7 +394,7 @@ class Scene:
             out_tri[tri_idx] = True
         parent = torch.arange(F, device=dev).repeat_interleave(k * k)
         mat = self._material.repeat_interleave(k * k) if self._material is not None else None
-        fine = Scene._from_parts(out_corners.reshape(-1, 4, 3), out_tri.reshape(-1), mat, self.material_names)
+        fine = Scene.from_parts(out_corners.reshape(-1, 4, 3), out_tri.reshape(-1), mat, self.material_names)
         return fine, parent
 
     def average_to_parent(self, values: Tensor, parent: Tensor, fine: Scene) -> Tensor:
@@ -418,7 +433,7 @@ class Scene:
                 mats.append(torch.full((s.num_facets,), off, dtype=torch.long, device=s.device))
                 names.append(f"scene{k}")
                 off += 1
-        return Scene._from_parts(corners, tri, torch.cat(mats), names)
+        return Scene.from_parts(corners, tri, torch.cat(mats), names)
 
     def to_trimesh(self) -> Any:
         """The facets as a triangle :class:`trimesh.Trimesh` (quads split in two) and the facet of each face.

@@ -399,7 +399,7 @@ def cornell_box(
     # one material per published part, even where it was split into quads and triangles
     uniq = list(dict.fromkeys(names))
     remap = torch.tensor([uniq.index(n) for n in names])
-    return Scene._from_parts(joined.corners, joined.is_triangle, remap[joined.material], uniq)
+    return Scene.from_parts(joined.corners, joined.is_triangle, remap[joined.material], uniq)
 
 
 def _box_faces(extents: Sequence[float], centre: Sequence[float], inward: bool) -> list[tuple[np.ndarray, np.ndarray]]:
