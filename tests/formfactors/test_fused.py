@@ -147,3 +147,25 @@ def test_fused_kernel_leaves_torch_threads_alone(threads):
         assert torch.get_num_threads() == threads
     finally:
         torch.set_num_threads(prev)
+
+
+def test_fused_kernel_is_fork_safe():
+    """A process that forks after the fused kernel (a DataLoader's workers, multiprocessing) must not be killed:
+    numba's GNU OpenMP layer aborted the child ("fork() called from a process already using GNU OpenMP"), and the
+    ray-casting thread pool inherited without its threads hung it."""
+    import subprocess
+    import sys
+
+    code = (
+        "import os, torch, torch_interreflect as ti\n"
+        "torch.set_num_threads(1)\n"  # torch's own GNU OpenMP pool is not fork-safe with more than one thread
+        "K = ti.form_factors(ti.scenes.w_shape(), backend='fused')\n"
+        "pid = os.fork()\n"
+        "if pid == 0:\n"
+        "    K2 = ti.form_factors(ti.scenes.w_shape(), backend='fused')\n"
+        "    os._exit(0 if torch.equal(K2.to_dense(), K.to_dense()) else 3)\n"
+        "print(os.waitstatus_to_exitcode(os.waitpid(pid, 0)[1]))\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert out.stdout.strip().splitlines()[-1] == "0", out.stdout + out.stderr[-2000:]

@@ -14,6 +14,7 @@ the autograd path), ``"auto"`` (fused unless the scene's vertices require grad; 
 from __future__ import annotations
 
 import os
+import threading
 from collections.abc import Callable
 from functools import cache
 from typing import Literal
@@ -33,12 +34,25 @@ Visibility = Callable[[Tensor, Tensor, Tensor], Tensor]
 _CHUNK_POINTS = 1 << 21
 
 
+#: One compiled launch at a time (numba's workqueue threading layer does not allow concurrent launches).
+_LAUNCH = threading.Lock()
+
+
 @cache
 def _kernels():
     """The numba module, or None when numba is missing or disabled (``TI_DISABLE_NUMBA=1``)."""
     if os.environ.get("TI_DISABLE_NUMBA", "") not in ("", "0"):
         return None
     try:
+        import numba
+
+        if "NUMBA_THREADING_LAYER" not in os.environ:
+            # numba's default picks GNU OpenMP here, which is not fork-safe: a process that forks after a fused
+            # kernel (a DataLoader's workers, multiprocessing) was killed ("fork() called from a process already
+            # using GNU OpenMP"), and it shares the OpenMP runtime (and thread count) with torch. The workqueue
+            # layer is fork-safe and separate; its one limit, no concurrent launches from two threads, is kept by
+            # the lock in _run.
+            numba.config.THREADING_LAYER = "workqueue"
         from . import _numba_kernels
     except ImportError:  # pragma: no cover - numba is a dependency; a broken install falls back to torch
         return None
@@ -71,11 +85,12 @@ def _run(kernel: Callable[..., None], *args: object) -> None:
     import numba
 
     prev = torch.get_num_threads()
-    try:
-        numba.set_num_threads(max(1, min(prev, numba.config.NUMBA_NUM_THREADS)))
-        kernel(*args)
-    finally:
-        torch.set_num_threads(prev)
+    with _LAUNCH:
+        try:
+            numba.set_num_threads(max(1, min(prev, numba.config.NUMBA_NUM_THREADS)))
+            kernel(*args)
+        finally:
+            torch.set_num_threads(prev)
 
 
 def _np(t: Tensor):

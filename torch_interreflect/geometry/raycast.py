@@ -7,6 +7,7 @@ Geometry work that is not differentiable: it runs once per scene, on numpy float
 
 from __future__ import annotations
 
+import os
 from concurrent.futures import ThreadPoolExecutor
 from functools import cache
 
@@ -24,6 +25,11 @@ _MIN_RAYS_PER_THREAD = 1 << 14
 @cache
 def _pool(n: int) -> ThreadPoolExecutor:
     return ThreadPoolExecutor(max_workers=n, thread_name_prefix="ti-raycast")
+
+
+# A forked child inherits the pool object but not its threads: waiting on it would hang forever (a DataLoader's
+# workers, multiprocessing). The child starts with no pool and makes its own on first use.
+os.register_at_fork(after_in_child=_pool.cache_clear)
 
 
 def _run_split(run, n_rays: int, *arrays: np.ndarray) -> np.ndarray:
