@@ -134,6 +134,8 @@ def group_sums(
     need: Tensor | None = None,
     vis: Visibility | None = None,
     backend: Backend = "auto",
+    *,
+    chunk_points: int = 1 << 18,
 ) -> Tensor:
     """``A_dom F_dom,tgt`` (not clamped) of pairs whose domain is a whole facet, by one rule.
 
@@ -150,13 +152,14 @@ def group_sums(
         need: Pairs whose points get visible fractions from ``vis``. Bool ``[P]`` (None: all visible).
         vis: Visible fractions of points (a :class:`.visibility.PointVisibility`).
         backend: See the module doc.
+        chunk_points: Quadrature points × polygon corners per chunk of the torch path.
 
     Returns:
         ``Σ_q F(x_q → target) |J_q| w_q vis_q`` in m². Shape ``[P]``.
     """
     u, v, w = rule
     if not resolve_backend(backend, corners, normals, cent):
-        return _torch_group_sums(corners, normals, cent, dom, tgt, shift, clip, rule, eps, need, vis)
+        return _torch_group_sums(corners, normals, cent, dom, tgt, shift, clip, rule, eps, need, vis, chunk_points)
     k = _kernels()
     out = torch.empty(dom.numel(), dtype=torch.float64)
     per = max(64, _CHUNK_POINTS // u.numel())
@@ -171,11 +174,11 @@ def group_sums(
     return out
 
 
-def _torch_group_sums(corners, normals, cent, dom, tgt, shift, clip, rule, eps, need, vis) -> Tensor:
-    """:func:`group_sums` in torch (any device, autograd): the quadrature of ``pair_values``, chunked."""
+def _torch_group_sums(corners, normals, cent, dom, tgt, shift, clip, rule, eps, need, vis, chunk_points) -> Tensor:
+    """:func:`group_sums` in torch (any device, autograd), chunked: the reference the compiled loop follows."""
     u, v, w = rule
     out = []
-    per = max(1, (1 << 18) // (u.numel() * 5))
+    per = max(1, chunk_points // (u.numel() * 5))
     for s in range(0, dom.numel(), per):
         d, t, sh = dom[s : s + per], tgt[s : s + per], shift[s : s + per]
         target = corners[t]

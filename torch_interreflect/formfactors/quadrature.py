@@ -18,7 +18,6 @@
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, Literal
 
@@ -29,7 +28,6 @@ from tqdm.auto import tqdm
 from .._deprecation import renamed_keywords
 from ..errors import ValueRangeError
 from ..geometry._polygon import (
-    bilinear,
     clip_polygons,
     facing_matrix,
     plane_eps,
@@ -38,8 +36,7 @@ from ..geometry._polygon import (
 )
 from ..geometry.scene import Scene
 from .checks import check_row_sums, warn_if_wrong_side
-from .contour import point_polygon_factor
-from .fused import Backend, fan_sums, group_sums, resolve_backend
+from .fused import Backend, fan_sums, group_sums
 from .memory import check_memory, dense_kernel_bytes
 from .montecarlo import monte_carlo
 from .operator import FormFactors
@@ -315,19 +312,11 @@ def pair_values(
     vis_before = vis.seconds if vis is not None else 0.0
     seconds_vis = time.perf_counter() - t_vis
 
-    def visible(p: Tensor, x: Tensor) -> Tensor:
-        """Per-point visible fractions ``[p, Q]`` (1 where no ray is needed)."""
-        out = torch.ones(x.shape[:2], dtype=torch.float64)
-        rows = torch.nonzero(need[p]).reshape(-1)
-        if vis is not None and rows.numel():
-            out[rows] = vis(x[rows], dom[p[rows]], tgt[p[rows]])
-        return out
-
     bar = tqdm(total=int(dom.numel()), desc="form factors", unit="pair", leave=False,
                disable=None if progress else True, mininterval=1.0)
-    fused = (need, vis, backend) if resolve_backend(backend, sc.corners, sc.normals, sc.centroids) else None
-    points = integrate_groups(sc, dom, tgt, cls, groups, visible, value, chunk_points, eps, bar, fused)
-    points += integrate_clipped(sc, dom, tgt, cls, clipped, visible, value, chunk_points, eps, bar, fused)
+    visibility = (need, vis, backend)
+    points = integrate_groups(sc, dom, tgt, cls, groups, visibility, value, chunk_points, eps, bar)
+    points += integrate_clipped(sc, dom, tgt, cls, clipped, visibility, value, chunk_points, eps, bar)
     bar.close()
     value = value.clamp_min(0.0)
     seconds_vis += (vis.seconds if vis is not None else 0.0) - vis_before
@@ -394,51 +383,37 @@ def rule_groups(cls: PairClasses) -> tuple[list[tuple[str, Tensor, int]], Tensor
 
 
 def integrate_groups(sc: Scene, dom: Tensor, tgt: Tensor, cls: PairClasses, groups: list[tuple[str, Tensor, int]],
-                     visible: Callable[[Tensor, Tensor], Tensor], value: Tensor, chunk_points: int, eps: float,
-                     bar: Any, fused: tuple[Tensor, Any, Backend] | None = None) -> int:
+                     visibility: tuple[Tensor, Any, Backend], value: Tensor, chunk_points: int, eps: float,
+                     bar: Any) -> int:
     """Integrate the pairs of each rule group (domain unclipped) into ``value``; returns the quadrature points.
 
-    ``fused = (need, vis, backend)`` evaluates each group in one compiled loop
-    (:func:`~torch_interreflect.formfactors.fused.group_sums`, the same numbers as the torch loop).
+    ``visibility = (need, vis, backend)``: the pairs that get ray-cast visible fractions, the
+    :class:`~.visibility.PointVisibility`, and the backend of :func:`~.fused.group_sums` (the compiled loop, or
+    the same maths in torch for autograd and other devices).
     """
+    need, vis, backend = visibility
     corners, normals, cent = sc.corners, sc.normals, sc.centroids
-    clip_t, shift = cls.clip_t, cls.shift
     points = 0
     for kind, sel, n in groups:
-        u, v, w = quadrature_rule(kind, n, torch.float64, torch.device("cpu"))
-        Q = u.numel()
-        if fused is not None:  # one compiled loop over the group's pairs (same numbers as the torch loop below)
-            need, vis, backend = fused
-            value[sel] = group_sums(corners, normals, cent, dom[sel], tgt[sel], shift[sel], clip_t[sel], (u, v, w), eps,
-                                    need[sel], vis, backend)
-            points += sel.numel() * Q
-            bar.update(sel.numel())
-            continue
-        per = max(1, chunk_points // (Q * 5))
-        for s in range(0, sel.numel(), per):
-            p = sel[s : s + per]
-            target = corners[tgt[p]]
-            if bool(clip_t[p].any()):
-                target = clip_polygons(target, cent[dom[p]], normals[dom[p]], eps)[:, :5]
-            idx = (torch.arange(4)[None, :] + shift[p, None]) % 4
-            domain = torch.gather(corners[dom[p]], 1, idx[..., None].expand(-1, -1, 3))
-            x, jac = bilinear(domain, u, v)
-            f = point_polygon_factor(x, normals[dom[p]], target) * visible(p, x)
-            value[p] = (f * jac * w).sum(1)
-            points += p.numel() * Q
-            bar.update(p.numel())
+        rule = quadrature_rule(kind, n, torch.float64, torch.device("cpu"))
+        value[sel] = group_sums(corners, normals, cent, dom[sel], tgt[sel], cls.shift[sel], cls.clip_t[sel], rule, eps,
+                                need[sel], vis, backend, chunk_points=chunk_points)
+        points += sel.numel() * rule[0].numel()
+        bar.update(sel.numel())
     return points
 
 
 def integrate_clipped(sc: Scene, dom: Tensor, tgt: Tensor, cls: PairClasses, clipped: Tensor,
-                      visible: Callable[[Tensor, Tensor], Tensor], value: Tensor, chunk_points: int, eps: float,
-                      bar: Any, fused: tuple[Tensor, Any, Backend] | None = None) -> int:
+                      visibility: tuple[Tensor, Any, Backend], value: Tensor, chunk_points: int, eps: float,
+                      bar: Any) -> int:
     """Integrate the pairs whose domain crosses the target's plane into ``value``; returns the quadrature points.
 
     The clipped polygon (at most five corners) is rotated so that its edge on the target's plane, where the
     integrand is singular when the two touch, comes first; the fan triangle on that edge gets the edge-graded
-    rule, the others (which touch it at one corner) the vertex-graded rule.
+    rule, the others (which touch it at one corner) the vertex-graded rule (:func:`~.fused.fan_sums`).
+    ``visibility`` as in :func:`integrate_groups`.
     """
+    need, vis, backend = visibility
     corners, normals, cent = sc.corners, sc.normals, sc.centroids
     points = 0
     if not clipped.numel():
@@ -454,20 +429,7 @@ def integrate_clipped(sc: Scene, dom: Tensor, tgt: Tensor, cls: PairClasses, cli
             poly = clip_polygons(corners[dom[p]], cent[tgt[p]], normals[tgt[p]], eps)[:, :5]
             poly = rotate_to_plane_edge(poly, cent[tgt[p]], normals[tgt[p]], eps)
             target = clip_polygons(corners[tgt[p]], cent[dom[p]], normals[dom[p]], eps)[:, :5]
-            if fused is not None:  # the three fan triangles in compiled loops
-                need, vis, backend = fused
-                value[p] = fan_sums(poly, target, normals[dom[p]], rules, dom[p], tgt[p], need[p], vis, backend)
-                points += p.numel() * (rules[0][0].numel() + 2 * rules[1][0].numel())
-                bar.update(p.numel())
-                continue
-            total = torch.zeros(p.numel(), dtype=torch.float64)
-            for k in range(1, 4):
-                u, v, w = rules[0] if k == 1 else rules[1]
-                tri = torch.stack([poly[:, 0], poly[:, k], poly[:, k + 1], poly[:, k + 1]], dim=1)
-                x, jac = bilinear(tri, u, v)
-                f = point_polygon_factor(x, normals[dom[p]], target) * visible(p, x)
-                total += (f * jac * w).sum(1)
-                points += p.numel() * u.numel()
-            value[p] = total
+            value[p] = fan_sums(poly, target, normals[dom[p]], rules, dom[p], tgt[p], need[p], vis, backend)
+            points += p.numel() * (rules[0][0].numel() + 2 * rules[1][0].numel())
             bar.update(p.numel())
     return points
