@@ -16,15 +16,11 @@ import torch
 from torch import Tensor
 
 from ..formfactors.operator import FormFactors
-from ..formfactors.quadrature import form_factors, pair_values
+from ..formfactors.quadrature import assemble, form_factors, pair_entries, pair_values
 from ..geometry._polygon import facing_matrix, plane_eps
 from ..geometry.scene import Scene
 
-__all__ = ["DENSE_MAX_FACETS", "SPARSE_DENSITY", "leaf_kernel"]
-
-#: Dense storage up to this many leaves, sparse CSR above when at most ``SPARSE_DENSITY`` of the entries are
-#: nonzero (as :func:`~torch_interreflect.formfactors.form_factors` chooses).
-DENSE_MAX_FACETS, SPARSE_DENSITY = 4096, 0.25
+__all__ = ["leaf_kernel"]
 
 
 def _old_block(K: FormFactors, kept: Tensor) -> tuple[Tensor, Tensor, Tensor]:
@@ -82,21 +78,11 @@ def leaf_kernel(
         occ[dom[need]] = True
         occ[tgt[need]] = True
         info["rays"] = vis.rays if vis is not None else 0
-        rows += [dom, tgt]
-        cols += [tgt, dom]
-        vals += [value / sc.areas[dom], value / sc.areas[tgt]]
+        for part, new in zip((rows, cols, vals), pair_entries(sc.areas, dom, tgt, value), strict=True):
+            part.append(new)
     r, c, v = torch.cat(rows), torch.cat(cols), torch.cat(vals)
-    keep = v > 0
-    r, c, v = r[keep], c[keep], v[keep]
     dtype, dev = scene.dtype, scene.device
-    if n <= DENSE_MAX_FACETS or r.numel() > SPARSE_DENSITY * n * n:
-        mat = torch.zeros(n, n, dtype=torch.float64)
-        mat[r, c] = v
-        matrix = mat.to(dtype)
-        layout = "dense"
-    else:
-        matrix = torch.sparse_coo_tensor(torch.stack([r, c]), v, (n, n)).coalesce().to(dtype).to_sparse_csr()
-        layout = "sparse"
+    matrix, layout = assemble(r, c, v, n, "auto", dtype)
     info.update(
         occluded_facets=occ,
         reused_entries=int(v0.numel()),

@@ -149,15 +149,7 @@ def form_factors(
         )
     info["max_row_sum"] = check_row_sums(rows, vals, F, quadrature_tol, method, occlusion, info.get("occluded_facets"))
     out_dtype, dev = scene.dtype, scene.device
-    if layout == "auto":
-        layout = "sparse" if rows.numel() <= _SPARSE_DENSITY * F * F else "dense"
-    if layout == "dense":
-        mat = torch.zeros(F, F, dtype=torch.float64, device=vals.device)
-        mat[rows, cols] = vals
-        matrix = mat.to(out_dtype)
-    else:
-        matrix = torch.sparse_coo_tensor(torch.stack([rows, cols]), vals, (F, F)).coalesce()
-        matrix = matrix.to(out_dtype).to_sparse_csr()
+    matrix, layout = assemble(rows, cols, vals, F, layout, out_dtype)
     info.update(method=method, seconds=time.perf_counter() - t0, layout=layout, nnz=int(rows.numel()))
     if method == "quadrature":
         info["quadrature_tol"] = quadrature_tol  # the solver's closure-error bound reads it
@@ -218,12 +210,39 @@ def _quadrature(
     approx[tgt[need]] = True
     info.update(occluded_pairs=int(need.sum()), rays=vis.rays if vis else 0, occluded_facets=approx)
 
-    areas = sc.areas
+    return (*pair_entries(sc.areas, dom, tgt, value), info)
+
+
+def pair_entries(areas: Tensor, dom: Tensor, tgt: Tensor, value: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """Matrix entries ``(rows, cols, F_ij)`` of both directions of pairs with ``value = A_dom F_dom,tgt``
+    (reciprocity: ``F_tgt,dom = value / A_tgt``); zero entries dropped.
+
+    Shape:
+        - areas: ``[F]`` (m²); dom, tgt, value: ``[P]``
+        - output: three ``[≤ 2P]`` tensors
+    """
     rows = torch.cat([dom, tgt])
     cols = torch.cat([tgt, dom])
     vals = torch.cat([value / areas[dom], value / areas[tgt]])
     keep = vals > 0
-    return rows[keep], cols[keep], vals[keep], info
+    return rows[keep], cols[keep], vals[keep]
+
+
+def assemble(rows: Tensor, cols: Tensor, vals: Tensor, F: int, layout: str, dtype: torch.dtype) -> tuple[Tensor, str]:
+    """The ``[F, F]`` matrix of the entries in ``dtype``, dense or CSR, and the layout used.
+
+    ``layout="auto"`` is dense up to ``_DENSE_MAX_FACETS`` facets and whenever more than ``_SPARSE_DENSITY`` of
+    the entries are nonzero, sparse CSR otherwise. Entries are float64 on the CPU (as the quadrature gives them).
+    """
+    if layout == "auto":
+        sparse = F > _DENSE_MAX_FACETS and rows.numel() <= _SPARSE_DENSITY * F * F
+        layout = "sparse" if sparse else "dense"
+    if layout == "dense":
+        mat = torch.zeros(F, F, dtype=torch.float64, device=vals.device)
+        mat[rows, cols] = vals
+        return mat.to(dtype), layout
+    matrix = torch.sparse_coo_tensor(torch.stack([rows, cols]), vals, (F, F)).coalesce()
+    return matrix.to(dtype).to_sparse_csr(), layout
 
 
 def _facing_pairs(sc: Scene, eps: float, output: tuple[str, int]) -> tuple[Tensor, Tensor]:
