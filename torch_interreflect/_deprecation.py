@@ -8,7 +8,7 @@ import warnings
 from collections.abc import Callable
 from typing import Any, TypeVar
 
-__all__ = ["moved_attribute", "renamed_keywords"]
+__all__ = ["moved_attribute", "renamed_keywords", "warn_once"]
 
 F = TypeVar("F", bound=Callable[..., Any])
 
@@ -28,14 +28,20 @@ def moved_attribute(module: str, name: str, moved: dict[str, Any]) -> Any:
     target = moved[name]
     new_module, new_name = target if isinstance(target, tuple) else (target, name)
     key = f"{module}.{name}"
-    if key not in _WARNED:
-        _WARNED.add(key)
-        warnings.warn(
-            f"{key} moved to {new_module}.{new_name}; the old name will be removed in the next release",
-            DeprecationWarning,
-            stacklevel=3,
-        )
+    warn_once(key, f"{key} moved to {new_module}.{new_name}; the old name will be removed in the next release",
+              stacklevel=4)
     return getattr(importlib.import_module(new_module), new_name)
+
+
+def warn_once(key: str, message: str, *, stacklevel: int = 3) -> None:
+    """A ``DeprecationWarning`` with ``message``, the first time ``key`` is seen in this process.
+
+    ``stacklevel`` counts from the caller of ``warn_once`` plus one (the default points at its caller's caller).
+    """
+    if key in _WARNED:
+        return
+    _WARNED.add(key)
+    warnings.warn(message, DeprecationWarning, stacklevel=stacklevel)
 
 
 def renamed_keywords(**renames: str) -> Callable[[F], F]:

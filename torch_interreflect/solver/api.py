@@ -21,13 +21,13 @@ Methods (all columns, i.e. batch × wavelength, share one form-factor matrix):
 from __future__ import annotations
 
 import math
-import warnings
 from typing import Any
 
 import torch
 from torch import Tensor
 
 from .._checks import as_real_tensor, check_reflectance
+from .._deprecation import warn_once
 from ..errors import ShapeError
 from ..formfactors.operator import FormFactorOperator, FormFactors
 from .columns import broadcast_facet_shapes, finish_output, prepare_inputs, to_columns
@@ -41,13 +41,13 @@ from .info import (
     warn_if_inaccurate,
     warn_if_not_converged,
 )
+from .krylov import bounce_series
 from .method import AUTO_COST, DEFAULT_MAX_ITER, METHODS, choose_method
 from .operator import solve_operator
 from .plan import SolvePlan, Stats, get_plan
 
 __all__ = ["AUTO_COST", "Solution", "SolveInfo", "radiance", "solve", "solve_with_info"]
 
-_RETURN_INFO_WARNED = False
 
 
 def _check_options(method: str, bounces: int | None, tol: float, max_iter: int | None) -> None:
@@ -105,9 +105,7 @@ def _solve_matrix(
     areas = form_factors.areas.detach().to(r.dtype)
     r_cols, b_cols = to_columns(r, shape), to_columns(e0, shape)
     if bounces is not None:
-        x = b_cols
-        for _ in range(bounces - 1):
-            x = b_cols + matmul(matrix, r_cols * x)
+        x = bounce_series(lambda y: matmul(matrix, y), r_cols, b_cols, bounces)
         info = make_info("series", bounces - 1, True, plan, matrix, areas, r_cols, b_cols, x, Stats()) if (
             want_info) else None
         return finish_output(x, shape, out_dtype, drop), info
@@ -238,15 +236,11 @@ def solve(
         (torch.Size([3, 31]), 2.0)
     """
     if return_info:
-        global _RETURN_INFO_WARNED
-        if not _RETURN_INFO_WARNED:
-            _RETURN_INFO_WARNED = True
-            warnings.warn(
-                "solve(..., return_info=True) is deprecated: use torch_interreflect.solver.solve_with_info(...), "
-                "which returns Solution(E, info)",
-                DeprecationWarning,
-                stacklevel=2,
-            )
+        warn_once(
+            "solve.return_info",
+            "solve(..., return_info=True) is deprecated: use torch_interreflect.solver.solve_with_info(...), which "
+            "returns Solution(E, info)",
+        )
         E, info = _dispatch(form_factors, reflectance, E0, bounces, tol, method, max_iter, True)
         return Solution(E, info)  # type: ignore[arg-type]
     return _dispatch(form_factors, reflectance, E0, bounces, tol, method, max_iter, False)[0]

@@ -11,8 +11,8 @@ from torch import Tensor
 from ..errors import SingularSystemError
 from .plan import Stats
 
-__all__ = ["cg", "cg_block", "column_tolerance", "error_tolerance", "neumann_block", "operator_cg", "operator_neumann",
-           "symmetric_operator"]
+__all__ = ["bounce_series", "cg", "cg_block", "column_tolerance", "error_tolerance", "neumann_block", "operator_cg",
+           "operator_neumann", "symmetric_operator"]
 
 
 
@@ -213,4 +213,18 @@ def neumann_block(
     stats.residual = max(stats.residual, worst)
     if failed:
         stats.converged = False
+    return x
+
+
+def bounce_series(matmul: Callable[[Tensor], Tensor], r: Tensor, b: Tensor, bounces: int) -> Tensor:
+    """The paper's n-bounce model on columns: ``x = Σ_{k < n} (F R)^k b`` by ``n − 1`` products ``x ← b + F (r x)``.
+
+    Differentiable by autograd through the products (memory grows with ``bounces``).
+
+    Shape:
+        - r, b, output: ``[F, N]``
+    """
+    x = b
+    for _ in range(bounces - 1):
+        x = b + matmul(r * x)
     return x

@@ -28,7 +28,7 @@ from .info import (
     warn_if_inaccurate,
     warn_if_not_converged,
 )
-from .krylov import error_tolerance, operator_cg, operator_neumann
+from .krylov import bounce_series, error_tolerance, operator_cg, operator_neumann
 from .method import DEFAULT_MAX_ITER
 from .plan import Component, Stats, operator_component
 
@@ -112,9 +112,7 @@ def solve_operator(
     comp, kernel_tol = operator_component(op)
     stats = Stats()
     if bounces is not None:
-        x = b_cols
-        for _ in range(bounces - 1):
-            x = b_cols + op.matmul(r_cols * x)
+        x = bounce_series(op.matmul, r_cols, b_cols, bounces)
         method_used, iters = "series", bounces - 1
     else:
         cfg = _OpConfig(op=op, method=method, tol=float(tol), stats=stats, comp=comp, kernel_tol=kernel_tol,
