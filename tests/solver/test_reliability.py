@@ -175,9 +175,9 @@ def test_solve_with_info_and_deprecated_return_info(monkeypatch: pytest.MonkeyPa
     sol = solve_with_info(ff, r, e0)
     assert isinstance(sol, Solution) and isinstance(sol.info, SolveInfo)
     torch.testing.assert_close(sol.E, solve(ff, r, e0))
-    import torch_interreflect.solver.api as api
+    import torch_interreflect._deprecation as deprecation
 
-    monkeypatch.setattr(api, "_RETURN_INFO_WARNED", False)
+    monkeypatch.setattr(deprecation, "_WARNED", set())  # forget warnings given earlier in this process
     with pytest.warns(DeprecationWarning, match="solve_with_info"):
         E, info = solve(ff, r, e0, return_info=True)
     with warnings.catch_warnings():
