@@ -32,7 +32,7 @@ from torch import Tensor, nn
 from ..errors import ShapeError
 from ..formfactors.contour import point_polygon_factor
 from ..formfactors.visibility import blocker_candidates
-from ..geometry._polygon import clip_polygons, facing_others, plane_eps
+from ..geometry._polygon import bilinear, clip_polygons, facing_others, plane_eps
 from ..geometry.raycast import RayCaster
 from ..geometry.scene import Scene
 from .sensor import Camera
@@ -70,12 +70,8 @@ def _target_samples(corners: Tensor, n: int, gen: torch.Generator) -> tuple[Tens
     cells = torch.arange(n, dtype=torch.float64)
     u = (cells.repeat_interleave(n)[None] + torch.rand(F, n * n, dtype=torch.float64, generator=gen)) / n
     v = (cells.repeat(n)[None] + torch.rand(F, n * n, dtype=torch.float64, generator=gen)) / n
-    d0, d1, d2, d3 = (corners[:, k, None, :] for k in range(4))
-    uu, vv = u[..., None], v[..., None]
-    y = (1 - uu) * (1 - vv) * d0 + uu * (1 - vv) * d1 + uu * vv * d2 + (1 - uu) * vv * d3
-    du = (1 - vv) * (d1 - d0) + vv * (d2 - d3)
-    dv = (1 - uu) * (d3 - d0) + uu * (d2 - d1)
-    return y, torch.linalg.cross(du, dv, dim=-1).norm(dim=-1) / (n * n)
+    y, jac = bilinear(corners, u, v)
+    return y, jac / (n * n)
 
 
 def _visibility(caster: RayCaster, x: Tensor, nx: Tensor, y: Tensor, w: Tensor, ny: Tensor) -> Tensor:

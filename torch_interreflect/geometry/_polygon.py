@@ -31,9 +31,10 @@ __all__ = [
 
 
 def bilinear(corners: Tensor, u: Tensor, v: Tensor) -> tuple[Tensor, Tensor]:
-    """Points ``[P, Q, 3]`` and area Jacobians ``[P, Q]`` of the bilinear map of quads ``[P, 4, 3]``."""
+    """Points ``[P, Q, 3]`` and area Jacobians ``[P, Q]`` of the bilinear map of quads ``[P, 4, 3]`` at unit-square
+    coordinates ``u, v``: ``[Q]`` (one rule for every quad) or ``[P, Q]`` (points per quad)."""
     d0, d1, d2, d3 = (c[:, None, :] for c in corners.unbind(1))
-    uu, vv = u[None, :, None], v[None, :, None]
+    uu, vv = (u[..., None], v[..., None]) if u.ndim == 2 else (u[None, :, None], v[None, :, None])
     x = (1 - uu) * (1 - vv) * d0 + uu * (1 - vv) * d1 + uu * vv * d2 + (1 - uu) * vv * d3
     du = (1 - vv) * (d1 - d0) + vv * (d2 - d3)
     dv = (1 - uu) * (d3 - d0) + uu * (d2 - d1)
