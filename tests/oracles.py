@@ -41,3 +41,20 @@ def random_reciprocal(n: int, scale: float = 0.9, dtype: torch.dtype = F64, seed
     f = s / areas[:, None]
     f = f / f.sum(1).max() * scale
     return FormFactors(f.to(dtype), areas.to(dtype))
+
+
+def per_column_solve(f: torch.Tensor, r: torch.Tensor, e0: torch.Tensor) -> torch.Tensor:
+    """``E`` with ``(I − F R) E = E0`` for every column, by ``torch.linalg.solve`` on one matrix at a time.
+
+    The reference the solver tests compare with, differentiable by autograd. One matrix per call on purpose:
+    batched LU on torch 2.13 CPU gives invalid pivots (or silently wrong solutions) with 2 threads at ~200 rows.
+
+    Shape:
+        - f: ``[F, F]``; r, e0: ``[..., F, L]`` (broadcast); output: the broadcast shape
+    """
+    r, e0 = torch.broadcast_tensors(r, e0)
+    eye = torch.eye(f.shape[0], dtype=f.dtype)
+    cols_r = r.movedim(-2, -1).reshape(-1, f.shape[0])
+    cols_e = e0.movedim(-2, -1).reshape(-1, f.shape[0])
+    out = torch.stack([torch.linalg.solve(eye - f * rc, ec) for rc, ec in zip(cols_r, cols_e, strict=True)])
+    return out.reshape(*r.shape[:-2], r.shape[-1], r.shape[-2]).movedim(-1, -2)

@@ -8,7 +8,7 @@ import warnings
 import pytest
 import torch
 
-from tests.oracles import random_reciprocal
+from tests.oracles import per_column_solve, random_reciprocal
 from torch_interreflect import FormFactors
 from torch_interreflect.errors import ConvergenceWarning, ShapeError, SingularSystemError, ValueRangeError
 from torch_interreflect.solver import SolveInfo, radiance, solve, solve_with_info
@@ -51,10 +51,7 @@ def block_diag(*ffs: FormFactors) -> FormFactors:
 
 def reference(ff: FormFactors, r: torch.Tensor, e0: torch.Tensor) -> torch.Tensor:
     """torch.linalg.solve on (I - F R) per column; r, e0 as [..., F, L]."""
-    r, e0 = torch.broadcast_tensors(r, e0)
-    f = ff.to_dense()
-    m = torch.eye(f.shape[0], dtype=f.dtype) - f * r.mT.unsqueeze(-2)
-    return torch.linalg.solve(m, e0.mT.unsqueeze(-1)).squeeze(-1).mT
+    return per_column_solve(ff.to_dense(), r, e0)
 
 
 # ------------------------------------------------------------------------------------------ closed forms
