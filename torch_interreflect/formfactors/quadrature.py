@@ -61,6 +61,7 @@ def form_factors(
     quadrature_tol: float = 1e-6,
     adjacent_order: int | None = None,
     visibility_samples: int = 3,
+    visibility_tol: float | None = None,
     rays_per_facet: int = 100_000,
     layout: Literal["auto", "dense", "sparse"] = "auto",
     generator: torch.Generator | None = None,
@@ -88,6 +89,11 @@ def form_factors(
             ``quadrature_tol``; these use rules graded toward the shared edge).
         visibility_samples: Points per direction on the target facet for visibility rays: every quadrature
             point of a pair that a third facet could block casts ``visibility_samples²`` kernel-weighted rays.
+        visibility_tol: Cells of that grid on a shadow boundary (their ray disagrees with a neighbour's) are split
+            2 × 2, again and again, while they carry more than this share of the point's kernel weight, so the
+            visible fraction converges (e.g. ``1e-3``); ``None`` (default) keeps the fixed grid, which is faster
+            but leaves an error of the grid's order. See
+            :class:`~torch_interreflect.formfactors.visibility.PointVisibility`.
         rays_per_facet: Rays per facet for ``method="monte_carlo"`` (formerly ``samples``).
         layout: Storage of the matrix: dense, sparse CSR, or chosen by size and density.
         generator: Random generator for ``method="monte_carlo"``.
@@ -145,7 +151,7 @@ def form_factors(
         itemsize = torch.empty(0, dtype=scene.dtype).element_size()
         rows, cols, vals, info = _quadrature(
             scene, occlusion, quadrature_tol, adjacent_order, visibility_samples, chunk_points, progress,
-            output=(layout, itemsize), backend=backend,
+            output=(layout, itemsize), backend=backend, visibility_tol=visibility_tol,
         )
     info["max_row_sum"] = check_row_sums(rows, vals, F, quadrature_tol, method, occlusion, info.get("occluded_facets"))
     out_dtype, dev = scene.dtype, scene.device
@@ -183,6 +189,7 @@ def _quadrature(
     progress: bool,
     output: tuple[str, int] = ("dense", 8),
     backend: Backend = "auto",
+    visibility_tol: float | None = None,
 ) -> tuple[Tensor, Tensor, Tensor, dict]:
     sc = scene.to(torch.float64).to("cpu")
     F = sc.num_facets
@@ -201,7 +208,7 @@ def _quadrature(
 
     dom, tgt, value, need, vis = pair_values(
         sc, iu, ju, occlusion, tol, adjacent_order, visibility_samples, chunk_points, progress, info, eps,
-        backend=backend,
+        backend=backend, visibility_tol=visibility_tol,
     )
 
     # facets with a pair whose visibility was estimated by rays: their row sums are estimates, not exact
@@ -297,6 +304,7 @@ def pair_values(
     eps: float,
     vis: PointVisibility | None = None,
     backend: Backend = "auto",
+    visibility_tol: float | None = None,
 ) -> tuple[Tensor, Tensor, Tensor, Tensor, PointVisibility | None]:
     """``A_i F_ij`` for given pairs ``(iu, ju)`` of mutually facing facets of ``sc`` (float64, CPU).
 
@@ -305,7 +313,7 @@ def pair_values(
     from rays, and the visibility object (``vis`` when given, reused across calls). Adds ``points``,
     ``seconds_quadrature``, ``seconds_visibility``, ``pairs_adjacent`` and ``pairs_clipped`` to ``info``
     (accumulating over calls). ``tol`` is the quadrature tolerance (``quadrature_tol`` of :func:`form_factors`);
-    ``backend``: see :func:`form_factors`.
+    ``backend``, ``visibility_tol``: see :func:`form_factors` (a ``vis`` given keeps its own).
     """
     areas = sc.areas
     # integrate over the smaller facet of each pair (the "domain"), contour over the other ("target")
@@ -327,7 +335,7 @@ def pair_values(
     else:
         need = blocker_candidates(sc, dom, tgt, eps)
     if vis is None and bool(need.any()):
-        vis = PointVisibility(sc, visibility_samples)
+        vis = PointVisibility(sc, visibility_samples, tol=visibility_tol)
     vis_before = vis.seconds if vis is not None else 0.0
     seconds_vis = time.perf_counter() - t_vis
 

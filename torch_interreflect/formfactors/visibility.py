@@ -17,9 +17,10 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from ..geometry._polygon import facet_samples, plane_groups
+from ..geometry._polygon import bilinear, clip_polygons, facet_samples, plane_groups
 from ..geometry.raycast import RayCaster
 from ..geometry.scene import Scene
+from .contour import point_polygon_factor
 
 __all__ = ["PointVisibility", "blocker_candidates"]
 
@@ -68,19 +69,37 @@ def _detached(sc: Scene) -> Scene:
 
 
 class PointVisibility:
-    """Kernel-weighted visible fraction of a target facet from quadrature points, by Embree rays.
+    """Kernel-weighted visible fraction of a target facet from quadrature points, by Embree rays, refined
+    adaptively at shadow boundaries.
 
-    From each point ``x`` rays go to ``n × n`` midpoint-rule points ``y`` of the target; each is weighted by
-    ``cos θ_x cos θ_y / |x − y|²`` times ``y``'s area, so the fraction converges to the visibility-weighted
-    point-to-polygon factor over the plain one as ``n`` grows. Computed on detached geometry: the result carries
-    no gradient (module docstring).
+    From each point ``x`` rays go to ``n × n`` midpoint-rule cells ``y`` of the target; each is weighted by
+    ``cos θ_x cos θ_y / |x − y|²`` times the cell's area. A cell whose ray disagrees with a neighbour's (a
+    shadow boundary passes near it) is split into 2 × 2 cells with a ray each, and split cells whose four rays
+    disagree are split again, while the cell carries more than ``tol`` of the point's kernel weight (at most
+    ``max_levels`` times). The error of the fraction is then bounded by the weight of the unsplit boundary cells,
+    not by the fixed grid: it falls with ``tol`` (``tests/formfactors/test_visibility.py`` measures it on a
+    penumbra against the exact fraction). Computed on detached geometry: the result carries no gradient (module
+    docstring).
+
+    Args:
+        sc: The scene.
+        n: Cells per direction of the first grid on the target facet.
+        caster: A :class:`~torch_interreflect.geometry.raycast.RayCaster` of the scene to reuse.
+        tol: Kernel-weight share (of a point's row to one target) below which a boundary cell is not split;
+            ``0`` splits down to ``max_levels``; ``None`` (default) never splits (the fixed ``n × n`` grid).
+        max_levels: Most splits of a first-grid cell.
     """
 
-    def __init__(self, sc: Scene, n: int, caster: Any = None) -> None:
+    def __init__(self, sc: Scene, n: int, caster: Any = None, *, tol: float | None = None,
+                 max_levels: int = 6) -> None:
         sc = _detached(sc)
         self.caster = caster if caster is not None else RayCaster(sc)
+        self.n = int(n)
+        self.tol = tol
+        self.max_levels = int(max_levels)
         pts, wts = facet_samples(sc.corners, n)  # [F, S, 3], [F, S]
         self.origin = torch.as_tensor(self.caster.origin)
+        self.corners = (sc.corners - self.origin).float()
         self.pts = (pts - self.origin).float()
         self.wts = wts.float()
         self.normals = sc.normals.float()
@@ -101,21 +120,138 @@ class PointVisibility:
         for s in range(0, P, per):
             a, b = dom[s : s + per], tgt[s : s + per]
             xa = xs[s : s + per][:, :, None, :]  # [c, Q, 1, 3]
-            r = self.pts[b][:, None, :, :] - xa  # [c, Q, S, 3]
-            d2 = (r * r).sum(-1).clamp_min(1e-30)
-            length = d2.sqrt()
-            cos_a = (r * self.normals[a][:, None, None, :]).sum(-1).clamp_min(0)
-            cos_b = (-(r * self.normals[b][:, None, None, :]).sum(-1)).clamp_min(0)
-            k = cos_a * cos_b / (d2 * d2) * self.wts[b][:, None, :]
-            direction = r / length[..., None]
-            origin = xa + self.caster.eps * direction
-            blocked = torch.from_numpy(
-                self.caster.occluded(origin.reshape(-1, 3).numpy(), direction.reshape(-1, 3).numpy(),
-                                     (length - 2 * self.caster.eps).reshape(-1).numpy())
-            ).reshape(k.shape)
-            num = (k * (~blocked)).sum(-1)
-            den = k.sum(-1)
-            out[s : s + per] = torch.where(den > 0, num / den.clamp_min(1e-30), torch.ones_like(den)).double()
-            self.rays += int(blocked.numel())
+            k = self._weights(xa, self.normals[a][:, None, None, :], self.pts[b][:, None, :, :],
+                              self.normals[b][:, None, None, :], self.wts[b][:, None, :])
+            seen = ~self._blocked(xa, self.pts[b][:, None, :, :])  # [c, Q, S]
+            num = (k * seen).sum(-1).double()
+            den = k.sum(-1).double()
+            if self.tol is not None and self.max_levels > 0:
+                self._refine(xa, a, b, k, seen, num, den)
+            out[s : s + per] = torch.where(den > 0, num / den.clamp_min(1e-300), torch.ones_like(den))
         self.seconds += time.perf_counter() - t0
         return out
+
+    @staticmethod
+    def _weights(x: Tensor, nx: Tensor, y: Tensor, ny: Tensor, area: Tensor) -> Tensor:
+        """Point-to-point kernel ``cos θ_x cos θ_y / |x − y|²`` times the area of ``y``'s cell (no ``π``)."""
+        r = y - x
+        d2 = (r * r).sum(-1).clamp_min(1e-30)
+        cos_a = (r * nx).sum(-1).clamp_min(0)
+        cos_b = (-(r * ny).sum(-1)).clamp_min(0)
+        return cos_a * cos_b / (d2 * d2) * area
+
+    def _blocked(self, x: Tensor, y: Tensor) -> Tensor:
+        """Whether the segments from ``x`` to ``y`` (broadcast) hit a facet (bool, their broadcast shape)."""
+        r = y - x
+        length = (r * r).sum(-1).clamp_min(1e-30).sqrt()
+        direction = r / length[..., None]
+        origin = x + self.caster.eps * direction
+        blocked = self.caster.occluded(origin.reshape(-1, 3).numpy(), direction.reshape(-1, 3).numpy(),
+                                       (length - 2 * self.caster.eps).reshape(-1).numpy())
+        self.rays += int(length.numel())
+        return torch.from_numpy(blocked).reshape(length.shape)
+
+    def _refine(self, xa: Tensor, a: Tensor, b: Tensor, k: Tensor, seen: Tensor, num: Tensor, den: Tensor) -> None:
+        """Rows (point, target) whose first-grid rays disagree: exact cell weights, and boundary cells split.
+
+        Works in place on ``num`` and ``den`` (float64 ``[c, Q]``) from the first grid (``k``, ``seen``:
+        ``[c, Q, n²]``). For a row with a shadow boundary the midpoint weights ``k`` would leave a quadrature error
+        of the smooth kernel in the ratio; its cells are weighted instead by their exact point-to-polygon factors
+        (Lambert's formula on the cell, clipped to the point's horizon), so ``den`` becomes the exact unoccluded
+        factor and only boundary cells carry an error. A split cell's weight is shared among its children in
+        proportion to their midpoint kernels (exact sums, second-order split) unless it is wider than a tenth of
+        its distance to the point (then its children get exact factors too). A cell is on a boundary when its
+        ray disagrees with a neighbour's on the same level's grid (the children of the split cells of a row form
+        one grid, so a boundary between the children of two split cells is found like one between siblings).
+        """
+        n = self.n
+        c, Q, S = k.shape
+        g = seen.reshape(c, Q, n, n)
+        edge = torch.zeros_like(g)
+        dv = g[..., 1:, :] != g[..., :-1, :]
+        du = g[..., :, 1:] != g[..., :, :-1]
+        edge[..., 1:, :] |= dv
+        edge[..., :-1, :] |= dv
+        edge[..., :, 1:] |= du
+        edge[..., :, :-1] |= du
+        edge = edge.reshape(c, Q, S)
+        cell, row = torch.nonzero(edge.any(-1), as_tuple=True)  # rows with a boundary
+        if cell.numel() == 0:
+            return
+        j = torch.arange(S)
+        iu, iv = j // n, j % n  # facet_samples: u varies slowest
+        w = self._cell_factors(xa[cell, row, 0], a[cell], b[cell], iu.expand(cell.numel(), S),
+                               iv.expand(cell.numel(), S), n)  # [M, S]
+        wden = w.sum(-1).clamp_min(1e-300)
+        split = edge[cell, row] & (w / wden[:, None] > self.tol)
+        den[cell, row] = wden
+        num[cell, row] = (w * seen[cell, row] * ~split).sum(-1)
+        m, jj = torch.nonzero(split, as_tuple=True)
+        cell, row, iu, iv, wp = cell[m], row[m], iu[jj], iv[jj], w[m, jj]
+        size = n
+        for level in range(self.max_levels):
+            if cell.numel() == 0:
+                return
+            # the 2 × 2 children of every split cell on the grid of the next level
+            size *= 2
+            iu = (2 * iu[:, None] + torch.tensor([0, 0, 1, 1])).reshape(-1)
+            iv = (2 * iv[:, None] + torch.tensor([0, 1, 0, 1])).reshape(-1)
+            cell, row = cell.repeat_interleave(4), row.repeat_interleave(4)
+            y, jac = bilinear(self.corners[b[cell]], ((iu + 0.5) / size).float()[:, None],
+                              ((iv + 0.5) / size).float()[:, None])
+            x = xa[cell, row]
+            sc = ~self._blocked(x, y)[:, 0]
+            # the parent's exact weight shared among its children by their midpoint kernels (second order)
+            kc = self._weights(x, self.normals[a[cell]][:, None, :], y, self.normals[b[cell]][:, None, :],
+                               jac).reshape(-1, 4).double()
+            wc = wp[:, None] * kc / kc.sum(-1, keepdim=True).clamp_min(1e-300)
+            # near the point (a cell wider than a tenth of its distance) the kernel varies too much for that:
+            # exact factors for those children
+            d2 = ((y[:, 0] - x[:, 0]) ** 2).sum(-1).double()
+            near = (jac[:, 0].double() / (size * size) > 1e-2 * d2).reshape(-1, 4).any(-1)
+            if bool(near.any()):
+                g = torch.nonzero(near).reshape(-1) * 4
+                idx = (g[:, None] + torch.arange(4)).reshape(-1)
+                wc[near] = self._cell_factors(x[idx, 0], a[cell[idx]], b[cell[idx]], iu[idx, None], iv[idx, None],
+                                              size).reshape(-1, 4)
+            wc = wc.reshape(-1)
+            split = _disagrees_with_neighbour(((cell * Q + row) * size + iu) * size + iv, sc, size)
+            split &= wc / den[cell, row] > self.tol
+            if level == self.max_levels - 1:
+                split[:] = False
+            keep = ~split
+            num.index_put_((cell[keep], row[keep]), (wc * sc)[keep], accumulate=True)
+            cell, row, iu, iv, wp = cell[split], row[split], iu[split], iv[split], wc[split]
+
+    def _cell_factors(self, x: Tensor, a: Tensor, b: Tensor, iu: Tensor, iv: Tensor, size: int) -> Tensor:
+        """Exact factors ``[R, C]`` (float64, Lambert's formula, no occlusion) from points ``x [R, 3]`` on facets
+        ``a [R]`` to the cells ``(iu, iv) [R, C]`` of a ``size × size`` grid of facets ``b [R]``, clipped to the
+        points' horizons."""
+        R, C = iu.shape
+        du = torch.tensor([0, 1, 1, 0])
+        dv = torch.tensor([0, 0, 1, 1])
+        U = ((iu[..., None] + du) / size).reshape(R, C * 4).double()
+        V = ((iv[..., None] + dv) / size).reshape(R, C * 4).double()
+        poly, _ = bilinear(self.corners[b].double(), U, V)  # [R, C·4, 3]
+        poly = poly.reshape(R * C, 4, 3)
+        xx = x.double().repeat_interleave(C, 0)
+        nx = self.normals[a].double().repeat_interleave(C, 0)
+        poly = clip_polygons(poly, xx, nx, 0.0)
+        return point_polygon_factor(xx[:, None, :], nx, poly).reshape(R, C).clamp_min(0)
+
+
+def _disagrees_with_neighbour(key: Tensor, value: Tensor, size: int) -> Tensor:
+    """Which cells of a sparse grid (int64 keys ``(row · size + iu) · size + iv``) hold a value unlike one of
+    their (present) 4-neighbours on the same row."""
+    order = torch.argsort(key)
+    sk, sv = key[order], value[order]
+    iu, iv = (sk // size) % size, sk % size
+    out = torch.zeros_like(sv)
+    for step, ok in ((1, iv < size - 1), (-1, iv > 0), (size, iu < size - 1), (-size, iu > 0)):
+        nb = sk + step
+        pos = torch.searchsorted(sk, nb).clamp_max(sk.numel() - 1)
+        found = ok & (sk[pos] == nb)
+        out |= found & (sv[pos] != sv)
+    res = torch.empty_like(out)
+    res[order] = out
+    return res

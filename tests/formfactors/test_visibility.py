@@ -1,0 +1,84 @@
+"""Ray-cast visibility against an exact penumbra: a half-plane blocker between a point and a facet."""
+
+import pytest
+import torch
+
+import torch_interreflect as ti
+from torch_interreflect.formfactors import point_polygon_factor
+from torch_interreflect.formfactors.visibility import PointVisibility
+from torch_interreflect.geometry._polygon import clip_polygons
+
+# receiver at z = 0 (facing +z), target at z = 1 (facing down), blocker at z = 0.5 whose edge runs obliquely
+# (x = 0.05 + 0.3 y) so that no grid of the target lines up with the shadow's boundary
+RECEIVER = [[-0.2, -0.2, 0.0], [0.2, -0.2, 0.0], [0.2, 0.2, 0.0], [-0.2, 0.2, 0.0]]
+TARGET = [[-0.37, -0.5, 1.0], [-0.37, 0.5, 1.0], [0.63, 0.5, 1.0], [0.63, -0.5, 1.0]]
+BLOCKER = [[-2.0, -2.0, 0.5], [-2.0, 2.0, 0.5], [0.05 + 0.6, 2.0, 0.5], [0.05 - 0.6, -2.0, 0.5]]
+
+
+def _setup(dtype):
+    scene = ti.Scene.from_polygons(torch.tensor([RECEIVER, TARGET, BLOCKER], dtype=dtype))
+    g = torch.Generator().manual_seed(3)
+    x = (torch.rand(1, 16, 2, generator=g, dtype=dtype) - 0.5) * 0.4
+    x = torch.cat([x, torch.zeros(1, 16, 1, dtype=dtype)], dim=-1)  # [1, Q, 3] on the receiver
+    return scene, x
+
+
+def _exact(scene, x):
+    """Visible fraction of the target from each point: the target clipped by the plane through the point and
+    the blocker's edge, over the whole target (Lambert's contour formula for both)."""
+    n = torch.tensor([[0.0, 0.0, 1.0]], dtype=x.dtype)
+    target = scene.corners[1:2]
+    full = point_polygon_factor(x, n, target)[0]
+    out = []
+    p0 = torch.tensor([0.05, 0.0, 0.5], dtype=x.dtype)
+    p1 = torch.tensor([0.35, 1.0, 0.5], dtype=x.dtype)
+    for q in range(x.shape[1]):
+        xq = x[0, q]
+        normal = torch.linalg.cross(p0 - xq, p1 - p0)
+        if float((torch.tensor([-2.0, 0.0, 0.5], dtype=x.dtype) - xq) @ normal) > 0:
+            normal = -normal
+        visible = clip_polygons(target, xq[None], normal[None], 0.0)
+        out.append(point_polygon_factor(x[:, q : q + 1], n, visible)[0, 0])
+    return torch.stack(out) / full
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_adaptive_visibility_converges_on_a_penumbra(dtype):
+    scene, x = _setup(dtype)
+    exact = _exact(scene, x)
+    assert float(exact.min()) > 0.2 and float(exact.max()) < 0.85  # every point sees a penumbra
+    dom, tgt = torch.tensor([0]), torch.tensor([1])
+    errors = {}
+    for tol in (None, 1e-2, 1e-3, 1e-4):
+        vis = PointVisibility(scene, 3, tol=tol, max_levels=12)
+        errors[tol] = float((vis(x, dom, tgt)[0] - exact.double()).abs().max())
+    # measured (float64 / float32): fixed grid 0.067 / 0.081, tol 1e-2: 0.0059 / 0.0071, 1e-3: 0.0011 / 0.0012,
+    # 1e-4: 2.0e-4 / 2.5e-4
+    assert errors[None] > 0.03
+    assert errors[1e-2] < 0.5 * errors[None]
+    assert errors[1e-3] < 0.3 * errors[1e-2]
+    assert errors[1e-4] < 3e-4
+
+
+def test_form_factors_visibility_tol_converges():
+    """Through ``form_factors``: the receiver → target factor past the blocker approaches a 40 × 40 grid's as the
+    tolerance falls (measured: 6.5e-4 off with the fixed 3 × 3 grid, 2.8e-6 at 1e-4)."""
+    scene, _ = _setup(torch.float64)
+    ref = float(ti.form_factors(scene, visibility_samples=40, visibility_tol=None, occlusion=True).to_dense()[0, 1])
+    err = {tol: abs(float(ti.form_factors(scene, visibility_samples=3, visibility_tol=tol, occlusion=True)
+                          .to_dense()[0, 1]) - ref) for tol in (None, 1e-4)}
+    assert err[None] > 3e-4
+    assert err[1e-4] < 3e-5
+
+
+def test_rows_without_a_boundary_cast_no_extra_rays():
+    """Rows whose first-grid rays agree are not refined: the ray count equals the fixed grid's."""
+    scene, x = _setup(torch.float64)
+    far = x.clone()
+    far[..., 0] = far[..., 0] + 5.0  # points far to the side: the blocker hides the whole target or none of it
+    fixed = PointVisibility(scene, 3, tol=None)
+    adaptive = PointVisibility(scene, 3, tol=1e-4)
+    out_fixed = fixed(far, torch.tensor([0]), torch.tensor([1]))
+    out_adaptive = adaptive(far, torch.tensor([0]), torch.tensor([1]))
+    assert adaptive.rays == fixed.rays == 16 * 9
+    torch.testing.assert_close(out_adaptive, out_fixed)
