@@ -94,6 +94,9 @@ def test_ctrl_c_exits_130_with_one_line(tmp_path: Path) -> None:
         [sys.executable, "-m", "torch_interreflect.cli", "generate", "--out", str(out), "--count", "1000",
          "--scenes", "v_groove", "--size", "8x8", "--no-progress"],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+        # a shell's background job (e.g. a CI script run with `&`) ignores SIGINT, and a child inherits that
+        # (Python then installs no KeyboardInterrupt handler): give the command the default, as a terminal does
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
     )
     deadline = time.monotonic() + 120
     while not (out / "000000.json").exists() and proc.poll() is None and time.monotonic() < deadline:
