@@ -5,7 +5,9 @@ user facets), refined uniformly (``Scene.subdivide(k)``). For each ``k`` and vis
 ``n × n`` grid (``visibility_samples=n``), the adaptive split of shadow-boundary cells (``visibility_tol``), and
 ``n = 30`` (100× the rays of the default ``n = 3``) as the visibility reference — it reports the kernel's wall
 time and rays, the total error of the area-averaged irradiance against Mitsuba (relative RMS over the 16 facets),
-and the *visibility part*: the same error measure between the setting and the ``n = 30`` reference.
+and the *visibility part*: the same error measure between the setting and the ``n = 30`` reference. The *split*
+rows solve the scene split at its contact lines first (:func:`~torch_interreflect.geometry.split_at_contacts`),
+also at ``k = 8``.
 
 Usage: ``python -m benchmarks.visibility [--quick]`` → ``benchmarks/results/visibility[_quick].md``.
 """
@@ -20,6 +22,7 @@ import numpy as np
 import torch
 
 import torch_interreflect as ti
+from torch_interreflect.geometry import area_average, split_at_contacts
 
 from ._common import mitsuba as mr
 
@@ -27,8 +30,8 @@ RESULTS = Path(__file__).resolve().parent / "results"
 SETTINGS = [(3, None), (3, 1e-3), (10, None), (30, None)]  # (visibility_samples, visibility_tol); last: reference
 
 
-def run(name: str, ks: list[int]) -> list[dict]:
-    """One row per (k, setting) for the reference ``name``."""
+def run(name: str, ks: list[int], split_only: tuple[int, ...] = ()) -> list[dict]:
+    """One row per (k, setting) for the reference ``name``, and the split scene alone at ``split_only``."""
     ref = mr.load_reference(name)
     spec = ref["settings"]
     scene = mr.build_scene(spec)
@@ -52,9 +55,30 @@ def run(name: str, ks: list[int]) -> list[dict]:
                 "scene": name, "k": k, "facets": fine.num_facets, "n": n, "tol": tol, "seconds": seconds,
                 "rays": rays, "total": float(np.sqrt(np.mean(((ec - e_ref) / e_ref) ** 2))),
                 "visibility": float(np.sqrt(np.mean(((ec - best) / e_ref) ** 2))),
+                "bias": float(np.mean((ec - e_ref) / e_ref)), "contacts": False,
             })
             print(rows[-1], flush=True)
+        rows.append(_split_row(name, scene, k, r, radiance, e_ref))
+    rows += [_split_row(name, scene, k, r, radiance, e_ref) for k in split_only]
     return rows
+
+
+def _split_row(name: str, scene, k: int, r: float, radiance: float, e_ref: np.ndarray) -> dict:
+    """The default kernel (n = 3) on the scene split at its contact lines first, then ``subdivide(k)``."""
+    pieces, parent0 = split_at_contacts(scene)
+    fine, parent = pieces.subdivide(k)
+    t0 = time.perf_counter()
+    K = ti.form_factors(fine, progress=False)
+    seconds = time.perf_counter() - t0
+    e0 = ti.lights.sky(fine, K, torch.full((1,), radiance, dtype=torch.float64))
+    e = ti.solve(K, torch.full((fine.num_facets,), r, dtype=torch.float64), e0)
+    ec = area_average(e.reshape(fine.num_facets, -1), parent0[parent], fine.areas, scene.num_facets)
+    ec = ec.numpy().reshape(-1)
+    row = {"scene": name, "k": k, "facets": fine.num_facets, "n": 3, "tol": None, "seconds": seconds,
+           "rays": int(K.info.get("rays", 0)), "total": float(np.sqrt(np.mean(((ec - e_ref) / e_ref) ** 2))),
+           "visibility": float("nan"), "bias": float(np.mean((ec - e_ref) / e_ref)), "contacts": True}
+    print(row, flush=True)
+    return row
 
 
 def write(rows: list[dict], path: Path) -> None:
@@ -65,15 +89,21 @@ def write(rows: list[dict], path: Path) -> None:
         "*total* against Mitsuba, *visibility* against the same kernel with `n = 30` (100× the default's rays).",
         "Times: wall seconds of `form_factors` on this 2-core machine, one run each.",
         "",
-        "| scene | k | facets | visibility | kernel s | rays | total | visibility part | part / total |",
-        "|---|---:|---:|---|---:|---:|---:|---:|---:|",
+        "*split* rows: the scene split at its contact lines (`ti.geometry.split_at_contacts`: the floor cut around",
+        "the blocks) before `subdivide(k)`, default visibility; *bias*: mean signed relative error.",
+        "",
+        "| scene | k | facets | visibility | kernel s | rays | total | bias | visibility part | part / total |",
+        "|---|---:|---:|---|---:|---:|---:|---:|---:|---:|",
     ]
     for w in rows:
-        setting = f"n={w['n']}" + (f", tol={w['tol']:g}" if w["tol"] is not None else "")
+        setting = ("split, " if w["contacts"] else "") + f"n={w['n']}" + (
+            f", tol={w['tol']:g}" if w["tol"] is not None else "")
         part = w["visibility"] / w["total"] if w["total"] > 0 else float("nan")
+        vis = "–" if w["contacts"] else f"{100 * w['visibility']:.3f} %"
+        ratio = "–" if w["contacts"] else f"{part:.2f}"
         lines.append(
             f"| {w['scene']} | {w['k']} | {w['facets']} | {setting} | {w['seconds']:.2f} | {w['rays']:,} | "
-            f"{100 * w['total']:.2f} % | {100 * w['visibility']:.3f} % | {part:.2f} |"
+            f"{100 * w['total']:.2f} % | {100 * w['bias']:+.2f} % | {vis} | {ratio} |"
         )
     path.write_text("\n".join(lines) + "\n")
     print(f"wrote {path}")
@@ -85,7 +115,8 @@ def main(argv: list[str] | None = None) -> None:
     args = ap.parse_args(argv)
     ks = [1, 2] if args.quick else [1, 2, 4]
     torch.set_default_dtype(torch.float64)
-    rows = [w for name in ("cornell_sky_r9", "cornell_sky_r2") for w in run(name, ks)]
+    split_only = () if args.quick else (8,)
+    rows = [w for name in ("cornell_sky_r9", "cornell_sky_r2") for w in run(name, ks, split_only)]
     write(rows, RESULTS / ("visibility_quick.md" if args.quick else "visibility.md"))
 
 

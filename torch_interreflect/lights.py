@@ -260,30 +260,34 @@ def _hemisphere_fractions(sc: Scene, idx: Tensor, *, samples: int, points: int) 
     from .geometry.raycast import RayCaster
 
     n = int(samples)
-    # jittered stratification of the unit square (fixed seed: reproducible, and unbiased where the midpoint
-    # rule is not for a discontinuous visibility) → cosine-weighted hemisphere
+    # jittered stratification of the unit square, drawn afresh for every point (fixed seed: reproducible). One
+    # pattern shared by all points would integrate the hemisphere with the same n² directions everywhere: its
+    # error (a few % of a window's solid angle on the Cornell box) would then be a bias, not noise that
+    # averages out over the points and facets.
     gen = torch.Generator().manual_seed(0)
     cells = torch.arange(n, dtype=torch.float64)
-    r1 = (cells.repeat_interleave(n) + torch.rand(n * n, dtype=torch.float64, generator=gen)) / n
-    r2 = (cells.repeat(n) + torch.rand(n * n, dtype=torch.float64, generator=gen)) / n
-    rad, ang = r1.sqrt(), 2 * math.pi * r2
-    local = torch.stack([rad * ang.cos(), rad * ang.sin(), (1 - r1).clamp_min(0).sqrt()], dim=-1)  # [D, 3]
+    cu, cv = cells.repeat_interleave(n), cells.repeat(n)  # [D]
     normals = sc.normals[idx]
     t1, t2 = tangent_frame(normals)
-    lx, ly, lz = (local[None, :, c, None] for c in range(3))
-    dirs = lx * t1[:, None] + ly * t2[:, None] + lz * normals[:, None]  # [k, D, 3]
     q = (torch.arange(points, dtype=torch.float64) + 0.5) / points
     qu = q.repeat_interleave(points) + (torch.rand(points * points, dtype=torch.float64, generator=gen) - 0.5) / points
     qv = q.repeat(points) + (torch.rand(points * points, dtype=torch.float64, generator=gen) - 0.5) / points
     caster = RayCaster(sc)
     escape = torch.empty(idx.numel(), dtype=torch.float64)
     back = torch.empty(idx.numel(), dtype=torch.float64)
-    per = max(1, (1 << 20) // (points * points * dirs.shape[1]))  # about a million rays at a time
+    per = max(1, (1 << 20) // (points * points * n * n))  # about a million rays at a time
     for s in range(0, idx.numel(), per):
         sl = slice(s, s + per)
         pts, jac = bilinear(sc.corners[idx[sl]], qu, qv)  # [k, P, 3]
-        o = pts[:, :, None, :].expand(-1, -1, dirs.shape[1], -1)
-        d = dirs[sl, None, :, :].expand(-1, pts.shape[1], -1, -1)
+        k, P = pts.shape[:2]
+        r1 = (cu + torch.rand(k, P, n * n, dtype=torch.float64, generator=gen)) / n
+        r2 = (cv + torch.rand(k, P, n * n, dtype=torch.float64, generator=gen)) / n
+        rad, ang = r1.sqrt(), 2 * math.pi * r2  # → cosine-weighted hemisphere
+        lx, ly, lz = rad * ang.cos(), rad * ang.sin(), (1 - r1).clamp_min(0).sqrt()  # [k, P, D]
+        d = (lx[..., None] * t1[sl, None, None] + ly[..., None] * t2[sl, None, None]
+             + lz[..., None] * normals[sl, None, None])  # [k, P, D, 3]
+        # start a hair above the facet: a ray that grazes it must not hit a coplanar neighbour's edge
+        o = (pts + caster.eps * normals[sl, None, :])[:, :, None, :].expand_as(d)
         hit = torch.from_numpy(caster.first_hit(o.reshape(-1, 3).numpy(), d.reshape(-1, 3).numpy()))
         hit = hit.reshape(d.shape[:-1])
         is_back = (hit >= 0) & ((d * sc.normals[hit.clamp_min(0)]).sum(-1) > 0)

@@ -20,6 +20,7 @@ from tqdm.auto import tqdm
 
 from ..camera.sensor import Camera
 from ..formfactors.operator import FormFactors
+from ..geometry.contacts import split_at_contacts
 from ..geometry.scene import Scene
 from ..solver.api import solve
 from . import apriori
@@ -116,8 +117,11 @@ class Refinement:
 
 def _start(pb: Problem) -> Refinement:
     F, dev = pb.F, pb.scene.device
+    # first leaves: the user's facets, split where another facet stands on them (a hidden part under a block
+    # would otherwise share its facet's light)
+    pieces, user = split_at_contacts(pb.scene)
     return Refinement(
-        leaves=Leaves(pb.scene, torch.arange(F, device=dev)),
+        leaves=Leaves(pieces, user),
         nodes=torch.arange(pb.grid.numel(), device=dev),
         est=torch.full((F,), math.inf, dtype=torch.float64),
         prev_delta=torch.full((F,), math.nan, dtype=torch.float64),
@@ -161,7 +165,8 @@ def _light_error(pb: Problem, st: Refinement, refl_leaf: Tensor) -> Tensor:
     if other is None:
         return torch.zeros(pb.F, dtype=torch.float64)
     h_other = pb.solve_gain(st.K, refl_leaf[..., st.nodes], other)  # type: ignore[arg-type]
-    return relative_change(h_other, st.h).to(torch.float64).cpu()  # type: ignore[arg-type]
+    mine = to_user(st.h, st.leaves, pb.F)  # type: ignore[arg-type]
+    return relative_change(to_user(h_other, st.leaves, pb.F), mine).to(torch.float64).cpu()
 
 
 @torch.no_grad()
@@ -173,15 +178,32 @@ def _solve_level(pb: Problem, st: Refinement) -> Tensor:
         st.h = _choose_wavelengths(pb, st, refl_leaf)
     else:
         st.h = pb.solve_gain(st.K, refl_leaf[..., st.nodes], st.g)  # type: ignore[arg-type]
-    if st.light_error is None:  # level 0 (the leaves are the user's facets): the ray-cast light's error
+    if st.light_error is None:  # level 0 (the user's facets, split at contacts): the ray-cast light's error
         st.light_error = _light_error(pb, st, refl_leaf)
-    if st.iterations == 0:  # the leaves are the user's facets: the a-priori estimate of their error
+    if st.iterations == 0:  # the user's facets (split at contacts): the a-priori estimate of their error
         t = time.perf_counter()
         r_nodes = refl_leaf[..., st.nodes]
-        st.est = apriori.estimate(st.leaves.scene, st.K, r_nodes, st.g, st.h, pb.light)  # type: ignore[arg-type]
+        est = apriori.estimate(st.leaves.scene, st.K, r_nodes, st.g, st.h, pb.light)  # type: ignore[arg-type]
+        st.est = _leaf_estimate_to_user(est, st)
         pb.seconds["estimate"] = time.perf_counter() - t
     vals = pb.rgb_of(st.h, st.nodes, refl_leaf) if pb.camera is not None else st.h * pb.S[..., None, st.nodes]
     return to_user(vals, st.leaves, pb.F)
+
+
+def _leaf_estimate_to_user(est: Tensor, st: Refinement) -> Tensor:
+    """Relative error estimates of the first leaves ``[n]`` onto the user facets ``[F]``, weighted by each leaf's
+    share of its user facet's power (a leaf hidden under a block has none; split at contacts, a user facet has
+    several first leaves)."""
+    user = st.leaves.user.cpu()
+    num_user = int(st.est.shape[0])
+    if user.numel() == num_user:
+        return est
+    h = st.h.detach().abs().to(torch.float64).cpu()  # type: ignore[union-attr]
+    power = h.movedim(-2, 0).reshape(h.shape[-2], -1).mean(1) * st.leaves.scene.areas.detach().double().cpu()
+    contrib = torch.where(power > 0, est.nan_to_num(0.0, posinf=0.0) * power, torch.zeros_like(power))
+    num = torch.zeros(num_user, dtype=torch.float64).index_add_(0, user, contrib)
+    den = torch.zeros(num_user, dtype=torch.float64).index_add_(0, user, power)
+    return torch.where(den > 0, num / den.clamp_min(1e-300), torch.zeros_like(den))
 
 
 def _update_estimate(st: Refinement, user_vals: Tensor) -> None:

@@ -3,10 +3,12 @@
 - :mod:`.scene`: :class:`Scene` (facets as tensors, subdivision, area averaging) and :func:`area_average`.
 - :mod:`.scenes`: builders (``v_groove``, ``box_corner``, ``closed_box``, ``w_shape``, ``cornell_box``, ``room``).
 - :mod:`.raycast`: :class:`RayCaster` (Embree, through ``embreex``; imported on first use).
+- :mod:`.contacts`: :func:`split_at_contacts` (split facets where another facet stands on them).
 """
 
 from . import scenes
+from .contacts import contact_pairs, split_at_contacts
 from .raycast import RayCaster
 from .scene import Scene, area_average
 
-__all__ = ["RayCaster", "Scene", "area_average", "scenes"]
+__all__ = ["RayCaster", "Scene", "area_average", "contact_pairs", "scenes", "split_at_contacts"]

@@ -1,0 +1,69 @@
+"""Splitting facets along contact lines: the pieces, and the bias they remove (a cube standing on a floor)."""
+
+import pytest
+import torch
+
+import torch_interreflect as ti
+from torch_interreflect.geometry import contact_pairs, split_at_contacts
+
+
+def cube_on_floor(dtype=torch.float64):
+    """A 2 × 2 floor (facet 0) and an open-bottomed cube of side 0.6, height 0.5, standing on it (top, 4 sides)."""
+    a, h = 0.3, 0.5
+    floor = [[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0]]
+    faces = [
+        [[-a, -a, h], [a, -a, h], [a, a, h], [-a, a, h]],
+        [[-a, -a, 0], [a, -a, 0], [a, -a, h], [-a, -a, h]],
+        [[a, -a, 0], [a, a, 0], [a, a, h], [a, -a, h]],
+        [[a, a, 0], [-a, a, 0], [-a, a, h], [a, a, h]],
+        [[-a, a, 0], [-a, -a, 0], [-a, -a, h], [-a, a, h]],
+    ]
+    return ti.Scene.from_polygons(torch.tensor([floor, *faces], dtype=dtype))
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_pieces_cover_their_parent(dtype):
+    scene = cube_on_floor(dtype)
+    assert contact_pairs(scene) == [(0, 2), (0, 3), (0, 4), (0, 5)]
+    pieces, parent = split_at_contacts(scene)
+    assert pieces.num_facets == 14 and parent.tolist() == [0] * 9 + [1, 2, 3, 4, 5]  # floor cut in a 3 × 3 grid
+    areas = torch.zeros(6, dtype=torch.float64).index_add_(0, parent, pieces.areas.double())
+    torch.testing.assert_close(areas, scene.areas.double(), rtol=1e-6 if dtype == torch.float32 else 1e-12, atol=0)
+    torch.testing.assert_close(pieces.normals, scene.normals[parent])  # orientation kept
+    assert pieces.dtype == dtype
+
+
+def test_shared_edges_are_not_contacts():
+    """Facets that meet at a shared edge (a groove, a box, a subdivided grid) are left alone."""
+    for scene in (ti.scenes.v_groove(45.0, divisions=3), ti.scenes.closed_box(divisions=2), ti.scenes.box_corner()):
+        pieces, parent = split_at_contacts(scene)
+        assert pieces is scene and torch.equal(parent, torch.arange(scene.num_facets))
+
+
+def test_cornell_box_floor_is_cut_around_both_blocks():
+    box = ti.scenes.cornell_box(1, light=False, dtype=torch.float64)
+    pieces, parent = split_at_contacts(box)
+    assert int((parent == 0).sum()) == 35 and pieces.num_facets == 50
+    torch.testing.assert_close(pieces.areas[parent == 0].sum(), box.areas[0], rtol=1e-9, atol=0)
+
+
+def _side_irradiance(scene, k, parent0):
+    fine, p = scene.subdivide(k)
+    K = ti.form_factors(fine, progress=False)
+    E = ti.solve(K, torch.full((fine.num_facets,), 0.8, dtype=torch.float64), ti.lights.sky(fine, K, torch.ones(1)))
+    top, A = parent0[p], fine.areas
+    avg = torch.zeros(6, dtype=torch.float64).index_add_(0, top, E[:, 0] * A)
+    return avg / torch.zeros(6, dtype=torch.float64).index_add_(0, top, A)
+
+
+def test_splitting_removes_the_hidden_area_bias():
+    """Under a sky (r = 0.8) the cube's sides are lit mostly by the floor. Unsplit, the floor's radiosity is spread
+    over the hidden square too: the sides come out 1.8–1.9 % low at k = 2 (measured), and it does not fall with k
+    (4.3 % at k = 4). Split, they are 0.27 % off the split scene at k = 8."""
+    scene = cube_on_floor()
+    pieces, parent = split_at_contacts(scene)
+    ref = _side_irradiance(pieces, 8, parent)
+    plain = (_side_irradiance(scene, 2, torch.arange(6)) / ref - 1)[2:]
+    split = (_side_irradiance(pieces, 2, parent) / ref - 1)[2:]
+    assert bool((plain < -0.015).all())
+    assert float(split.abs().max()) < 0.005
