@@ -207,14 +207,20 @@ def sky(
         raise ValueError(f"backfaces must be 'auto', True or False; got {backfaces!r}")
     open_part = 1.0 - form_factors.row_sums().to(torch.float64).cpu()  # keeps the gradient of F (module docstring)
     if backfaces is not False:
-        open_part = open_part - back_coverage(scene, only_where_possible=backfaces == "auto", sky_samples=sky_samples)
-    approx = form_factors.info.get("occluded_facets")
-    if backfaces is not False and approx is not None and bool(approx.any()):
+        from .geometry._polygon import facing_any
+
+        F = scene.num_facets
         # where rows of F rest on ray-cast visibility, 1 − Σ_j F_ij is a small difference of estimates: count the
-        # escaping rays directly instead (both sides of every facet block the sky)
-        idx = torch.nonzero(approx.cpu()).reshape(-1)
-        escape, _ = _hemisphere_fractions(_detached_cpu(scene), idx, samples=sky_samples, points=8)
-        open_part[idx] = escape
+        # escaping rays directly instead (both sides of every facet block the sky); elsewhere subtract the part of
+        # the hemisphere that sees some facet's back. One pass of rays serves both.
+        approx = form_factors.info.get("occluded_facets")
+        approx = approx.cpu() if approx is not None else torch.zeros(F, dtype=torch.bool)
+        maybe_back = facing_any(scene, one_way=True) if backfaces == "auto" else torch.ones(F, dtype=torch.bool)
+        idx = torch.nonzero(approx | maybe_back).reshape(-1)
+        if idx.numel():
+            escape, back = _hemisphere_fractions(_detached_cpu(scene), idx, samples=sky_samples, points=8)
+            open_part = open_part.clone()
+            open_part[idx] = torch.where(approx[idx], escape, open_part[idx] - back)
     open_part = open_part.clamp_min(0).to(spd.dtype).to(spd.device)
     return math.pi * open_part[:, None] * spd[..., None, :]
 
