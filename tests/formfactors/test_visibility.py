@@ -64,9 +64,9 @@ def test_form_factors_visibility_tol_converges():
     """Through ``form_factors``: the receiver → target factor past the blocker approaches a 40 × 40 grid's as the
     tolerance falls (measured: 6.5e-4 off with the fixed 3 × 3 grid, 2.8e-6 at 1e-4)."""
     scene, _ = _setup(torch.float64)
-    ref = float(ti.form_factors(scene, visibility_samples=40, visibility_tol=None, occlusion=True).to_dense()[0, 1])
-    err = {tol: abs(float(ti.form_factors(scene, visibility_samples=3, visibility_tol=tol, occlusion=True)
-                          .to_dense()[0, 1]) - ref) for tol in (None, 1e-4)}
+    ref = float(ti.form_factors(scene, visibility_samples=40, visibility_angle=None, occlusion=True).to_dense()[0, 1])
+    err = {tol: abs(float(ti.form_factors(scene, visibility_samples=3, visibility_tol=tol, visibility_angle=None,
+                                          occlusion=True).to_dense()[0, 1]) - ref) for tol in (None, 1e-4)}
     assert err[None] > 3e-4
     assert err[1e-4] < 3e-5
 
@@ -82,3 +82,15 @@ def test_rows_without_a_boundary_cast_no_extra_rays():
     out_adaptive = adaptive(far, torch.tensor([0]), torch.tensor([1]))
     assert adaptive.rays == fixed.rays == 16 * 9
     torch.testing.assert_close(out_adaptive, out_fixed)
+
+
+def test_small_targets_get_fewer_samples():
+    """``angle``: a target of angular size α gets ceil(α / angle) samples per direction (at most n); the fraction
+    of a far target stays close to the full grid's."""
+    scene, x = _setup(torch.float64)
+    full = PointVisibility(scene, 3)
+    coarse = PointVisibility(scene, 3, angle=10.0)  # every target "small": one ray per point
+    assert torch.equal(full(x, torch.tensor([0]), torch.tensor([1])),
+                       PointVisibility(scene, 3, angle=1e-3)(x, torch.tensor([0]), torch.tensor([1])))
+    coarse(x, torch.tensor([0]), torch.tensor([1]))
+    assert coarse.rays == 16 and full.rays == 16 * 9

@@ -52,7 +52,7 @@ from .cluster_tree import ClusterTree, build_tree, leaf_pairs, traverse
 from .cluster_visibility import ClusterVisibility
 from .hierarchical_operator import HierarchicalFormFactors
 from .quadrature import pair_values
-from .visibility import PointVisibility
+from .visibility import VISIBILITY_ANGLE, PointVisibility
 
 __all__ = ["HierarchicalFormFactors", "hierarchical_form_factors"]
 
@@ -199,7 +199,7 @@ def _near_field(sc: Scene, tree: ClusterTree, na: np.ndarray, nb: np.ndarray, oc
     F = sc.num_facets
     perm = torch.as_tensor(tree.perm)
     qinfo: dict[str, Any] = {}
-    vis = PointVisibility(sc, visibility_samples, caster) if caster is not None else None
+    vis = PointVisibility(sc, visibility_samples, caster, angle=VISIBILITY_ANGLE) if caster is not None else None
     rows_l, cols_l, vals_l = [], [], []
     occluded = torch.zeros(F, dtype=torch.bool)
     per_pair = (tree.end[na] - tree.start[na]) * (tree.end[nb] - tree.start[nb])

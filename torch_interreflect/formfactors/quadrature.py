@@ -41,7 +41,7 @@ from .memory import check_memory, dense_kernel_bytes
 from .montecarlo import monte_carlo
 from .operator import FormFactors
 from .rules import default_adjacent_order, order_for, quadrature_rule
-from .visibility import PointVisibility, blocker_candidates
+from .visibility import VISIBILITY_ANGLE, PointVisibility, blocker_candidates
 
 __all__ = ["PairClasses", "classify_pairs", "form_factors", "integrate_clipped", "integrate_groups", "pair_values",
            "rule_groups"]
@@ -62,6 +62,7 @@ def form_factors(
     adjacent_order: int | None = None,
     visibility_samples: int = 3,
     visibility_tol: float | None = None,
+    visibility_angle: float | None = VISIBILITY_ANGLE,
     rays_per_facet: int = 100_000,
     layout: Literal["auto", "dense", "sparse"] = "auto",
     generator: torch.Generator | None = None,
@@ -94,6 +95,11 @@ def form_factors(
             visible fraction converges (e.g. ``1e-3``); ``None`` (default) keeps the fixed grid, which is faster
             but leaves an error of the grid's order. See
             :class:`~torch_interreflect.formfactors.visibility.PointVisibility`.
+        visibility_angle: With the fixed grid: a target that looks small from the pair's other facet (angular
+            size ``α``: diameter over the centroids' distance) gets ``ceil(α / visibility_angle)`` points per
+            direction, at most ``visibility_samples``; ``None`` gives every target ``visibility_samples``. On the
+            Cornell box at 3,200 facets the default casts 5.8× fewer rays (kernel 2.6× faster) for 0.206 % against
+            0.187 % error (``benchmarks/results/visibility.md``).
         rays_per_facet: Rays per facet for ``method="monte_carlo"`` (formerly ``samples``).
         layout: Storage of the matrix: dense, sparse CSR, or chosen by size and density.
         generator: Random generator for ``method="monte_carlo"``.
@@ -152,6 +158,7 @@ def form_factors(
         rows, cols, vals, info = _quadrature(
             scene, occlusion, quadrature_tol, adjacent_order, visibility_samples, chunk_points, progress,
             output=(layout, itemsize), backend=backend, visibility_tol=visibility_tol,
+            visibility_angle=visibility_angle,
         )
     info["max_row_sum"] = check_row_sums(rows, vals, F, quadrature_tol, method, occlusion, info.get("occluded_facets"))
     out_dtype, dev = scene.dtype, scene.device
@@ -190,6 +197,7 @@ def _quadrature(
     output: tuple[str, int] = ("dense", 8),
     backend: Backend = "auto",
     visibility_tol: float | None = None,
+    visibility_angle: float | None = VISIBILITY_ANGLE,
 ) -> tuple[Tensor, Tensor, Tensor, dict]:
     sc = scene.to(torch.float64).to("cpu")
     F = sc.num_facets
@@ -208,7 +216,7 @@ def _quadrature(
 
     dom, tgt, value, need, vis = pair_values(
         sc, iu, ju, occlusion, tol, adjacent_order, visibility_samples, chunk_points, progress, info, eps,
-        backend=backend, visibility_tol=visibility_tol,
+        backend=backend, visibility_tol=visibility_tol, visibility_angle=visibility_angle,
     )
 
     # facets with a pair whose visibility was estimated by rays: their row sums are estimates, not exact
@@ -305,6 +313,7 @@ def pair_values(
     vis: PointVisibility | None = None,
     backend: Backend = "auto",
     visibility_tol: float | None = None,
+    visibility_angle: float | None = VISIBILITY_ANGLE,
 ) -> tuple[Tensor, Tensor, Tensor, Tensor, PointVisibility | None]:
     """``A_i F_ij`` for given pairs ``(iu, ju)`` of mutually facing facets of ``sc`` (float64, CPU).
 
@@ -313,7 +322,8 @@ def pair_values(
     from rays, and the visibility object (``vis`` when given, reused across calls). Adds ``points``,
     ``seconds_quadrature``, ``seconds_visibility``, ``pairs_adjacent`` and ``pairs_clipped`` to ``info``
     (accumulating over calls). ``tol`` is the quadrature tolerance (``quadrature_tol`` of :func:`form_factors`);
-    ``backend``, ``visibility_tol``: see :func:`form_factors` (a ``vis`` given keeps its own).
+    ``backend``, ``visibility_tol``, ``visibility_angle``: see :func:`form_factors` (a ``vis`` given keeps its
+    own).
     """
     areas = sc.areas
     # integrate over the smaller facet of each pair (the "domain"), contour over the other ("target")
@@ -335,7 +345,7 @@ def pair_values(
     else:
         need = blocker_candidates(sc, dom, tgt, eps)
     if vis is None and bool(need.any()):
-        vis = PointVisibility(sc, visibility_samples, tol=visibility_tol)
+        vis = PointVisibility(sc, visibility_samples, tol=visibility_tol, angle=visibility_angle)
     vis_before = vis.seconds if vis is not None else 0.0
     seconds_vis = time.perf_counter() - t_vis
 

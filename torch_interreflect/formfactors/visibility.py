@@ -22,7 +22,10 @@ from ..geometry.raycast import RayCaster
 from ..geometry.scene import Scene
 from .contour import point_polygon_factor
 
-__all__ = ["PointVisibility", "blocker_candidates"]
+__all__ = ["VISIBILITY_ANGLE", "PointVisibility", "blocker_candidates"]
+
+#: Default angular size (radians) per visibility sample of a target (:class:`PointVisibility`'s ``angle``).
+VISIBILITY_ANGLE = 0.3
 
 
 def blocker_candidates(sc: Scene, dom: Tensor, tgt: Tensor, eps: float) -> Tensor:
@@ -88,10 +91,13 @@ class PointVisibility:
         tol: Kernel-weight share (of a point's row to one target) below which a boundary cell is not split;
             ``0`` splits down to ``max_levels``; ``None`` (default) never splits (the fixed ``n × n`` grid).
         max_levels: Most splits of a first-grid cell.
+        angle: With the fixed grid (``tol=None``): a target whose angular size from the domain (diameter over the
+            centroids' distance, radians) is ``α`` gets ``ceil(α / angle)`` samples per direction, at most ``n``;
+            ``None`` gives every target ``n``.
     """
 
     def __init__(self, sc: Scene, n: int, caster: Any = None, *, tol: float | None = None,
-                 max_levels: int = 6) -> None:
+                 max_levels: int = 6, angle: float | None = None) -> None:
         sc = _detached(sc)
         self.caster = caster if caster is not None else RayCaster(sc)
         self.n = int(n)
@@ -103,6 +109,11 @@ class PointVisibility:
         self.pts = (pts - self.origin).float()
         self.wts = wts.float()
         self.normals = sc.normals.float()
+        self.angle = angle
+        self._grids: dict[int, tuple[Tensor, Tensor]] = {}
+        cent = sc.centroids
+        self.centroids = cent - self.origin
+        self.radius = (sc.corners - cent[:, None, :]).norm(dim=-1).max(dim=1).values
         self.rays = 0
         self.seconds = 0.0
 
@@ -112,23 +123,48 @@ class PointVisibility:
         to facets ``tgt [P]``."""
         t0 = time.perf_counter()
         x = x.detach()
-        P, Q, _ = x.shape
-        S = self.pts.shape[1]
-        out = torch.empty(P, Q, dtype=torch.float64)
+        out = torch.empty(x.shape[:2], dtype=torch.float64)
         xs = (x - self.origin).float()
+        if self.angle is None or self.tol is not None:
+            out[:] = self._fractions(xs, dom, tgt, self.n, self.pts, self.wts)
+        else:
+            # fewer target samples for targets that look small: ceil(angular size / angle) per direction
+            c = self.centroids
+            alpha = 2 * self.radius[tgt] / (c[tgt] - c[dom]).norm(dim=-1).clamp_min(1e-30)
+            n_row = (alpha / self.angle).ceil().clamp(1, self.n).long()
+            for m in n_row.unique().tolist():
+                rows = torch.nonzero(n_row == m).reshape(-1)
+                pts, wts = self._grid(m)
+                out[rows] = self._fractions(xs[rows], dom[rows], tgt[rows], m, pts, wts)
+        self.seconds += time.perf_counter() - t0
+        return out
+
+    def _grid(self, m: int) -> tuple[Tensor, Tensor]:
+        """Midpoint-rule points and weights of an ``m × m`` grid on every facet (cached)."""
+        if m == self.n:
+            return self.pts, self.wts
+        if m not in self._grids:
+            pts, wts = facet_samples(self.corners.double(), m)
+            self._grids[m] = (pts.float(), wts.float())
+        return self._grids[m]
+
+    def _fractions(self, xs: Tensor, dom: Tensor, tgt: Tensor, n: int, grid_pts: Tensor, grid_wts: Tensor) -> Tensor:
+        """Visible fractions ``[P, Q]`` from points ``xs`` (relative to the caster's origin) on an ``n × n`` grid."""
+        P, Q, _ = xs.shape
+        S = grid_pts.shape[1]
+        out = torch.empty(P, Q, dtype=torch.float64)
         per = max(1, (1 << 19) // (Q * S))
         for s in range(0, P, per):
             a, b = dom[s : s + per], tgt[s : s + per]
             xa = xs[s : s + per][:, :, None, :]  # [c, Q, 1, 3]
-            k = self._weights(xa, self.normals[a][:, None, None, :], self.pts[b][:, None, :, :],
-                              self.normals[b][:, None, None, :], self.wts[b][:, None, :])
-            seen = ~self._blocked(xa, self.pts[b][:, None, :, :])  # [c, Q, S]
+            k = self._weights(xa, self.normals[a][:, None, None, :], grid_pts[b][:, None, :, :],
+                              self.normals[b][:, None, None, :], grid_wts[b][:, None, :])
+            seen = ~self._blocked(xa, grid_pts[b][:, None, :, :])  # [c, Q, S]
             num = (k * seen).sum(-1).double()
             den = k.sum(-1).double()
             if self.tol is not None and self.max_levels > 0:
                 self._refine(xa, a, b, k, seen, num, den)
             out[s : s + per] = torch.where(den > 0, num / den.clamp_min(1e-300), torch.ones_like(den))
-        self.seconds += time.perf_counter() - t0
         return out
 
     @staticmethod
