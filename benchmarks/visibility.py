@@ -2,8 +2,9 @@
 
 The Cornell box under a uniform sky (the cached Mitsuba references ``cornell_sky_r2`` / ``cornell_sky_r9``, 16
 user facets), refined uniformly (``Scene.subdivide(k)``). For each ``k`` and visibility setting — the fixed
-``n × n`` grid (``visibility_samples=n``), the adaptive split of shadow-boundary cells (``visibility_tol``), and
-``n = 30`` (100× the rays of the default ``n = 3``) as the visibility reference — it reports the kernel's wall
+``n × n`` grid (``visibility_samples=n``), the adaptive split of shadow-boundary cells (``visibility_tol``), the
+default (``n = 3`` with fewer samples for small-looking targets, ``visibility_angle=0.3``), and ``n = 30`` on every
+target (100× the rays of ``n = 3``) as the visibility reference — it reports the kernel's wall
 time and rays, the total error of the area-averaged irradiance against Mitsuba (relative RMS over the 16 facets),
 and the *visibility part*: the same error measure between the setting and the ``n = 30`` reference. The *split*
 rows solve the scene split at its contact lines first (:func:`~torch_interreflect.geometry.split_at_contacts`),
@@ -27,7 +28,8 @@ from torch_interreflect.geometry import area_average, split_at_contacts
 from ._common import mitsuba as mr
 
 RESULTS = Path(__file__).resolve().parent / "results"
-SETTINGS = [(3, None), (3, 1e-3), (10, None), (30, None)]  # (visibility_samples, visibility_tol); last: reference
+#: (visibility_samples, visibility_tol, visibility_angle); the first is the default, the last the reference
+SETTINGS = [(3, None, 0.3), (3, None, None), (3, 1e-3, None), (10, None, None), (30, None, None)]
 
 
 def run(name: str, ks: list[int], split_only: tuple[int, ...] = ()) -> list[dict]:
@@ -41,18 +43,19 @@ def run(name: str, ks: list[int], split_only: tuple[int, ...] = ()) -> list[dict
     for k in ks:
         fine, parent = scene.subdivide(k)
         got = {}
-        for n, tol in SETTINGS:
+        for n, tol, angle in SETTINGS:
             t0 = time.perf_counter()
-            K = ti.form_factors(fine, visibility_samples=n, visibility_tol=tol, progress=False)
+            K = ti.form_factors(fine, visibility_samples=n, visibility_tol=tol, visibility_angle=angle, progress=False)
             seconds = time.perf_counter() - t0
             e0 = ti.lights.sky(fine, K, torch.full((1,), radiance, dtype=torch.float64))
             e = ti.solve(K, torch.full((fine.num_facets,), r, dtype=torch.float64), e0)
             ec = scene.average_to_parent(e.reshape(fine.num_facets, -1), parent, fine).numpy().reshape(-1)
-            got[(n, tol)] = (seconds, int(K.info.get("rays", 0)), ec)
+            got[(n, tol, angle)] = (seconds, int(K.info.get("rays", 0)), ec)
         best = got[SETTINGS[-1]][2]
-        for (n, tol), (seconds, rays, ec) in got.items():
+        for (n, tol, angle), (seconds, rays, ec) in got.items():
             rows.append({
-                "scene": name, "k": k, "facets": fine.num_facets, "n": n, "tol": tol, "seconds": seconds,
+                "scene": name, "k": k, "facets": fine.num_facets, "n": n, "tol": tol, "angle": angle,
+                "seconds": seconds,
                 "rays": rays, "total": float(np.sqrt(np.mean(((ec - e_ref) / e_ref) ** 2))),
                 "visibility": float(np.sqrt(np.mean(((ec - best) / e_ref) ** 2))),
                 "bias": float(np.mean((ec - e_ref) / e_ref)), "contacts": False,
@@ -64,7 +67,7 @@ def run(name: str, ks: list[int], split_only: tuple[int, ...] = ()) -> list[dict
 
 
 def _split_row(name: str, scene, k: int, r: float, radiance: float, e_ref: np.ndarray) -> dict:
-    """The default kernel (n = 3) on the scene split at its contact lines first, then ``subdivide(k)``."""
+    """The default kernel (n = 3, angle 0.3) on the scene split at its contact lines first, then ``subdivide(k)``."""
     pieces, parent0 = split_at_contacts(scene)
     fine, parent = pieces.subdivide(k)
     t0 = time.perf_counter()
@@ -74,7 +77,7 @@ def _split_row(name: str, scene, k: int, r: float, radiance: float, e_ref: np.nd
     e = ti.solve(K, torch.full((fine.num_facets,), r, dtype=torch.float64), e0)
     ec = area_average(e.reshape(fine.num_facets, -1), parent0[parent], fine.areas, scene.num_facets)
     ec = ec.numpy().reshape(-1)
-    row = {"scene": name, "k": k, "facets": fine.num_facets, "n": 3, "tol": None, "seconds": seconds,
+    row = {"scene": name, "k": k, "facets": fine.num_facets, "n": 3, "tol": None, "angle": 0.3, "seconds": seconds,
            "rays": int(K.info.get("rays", 0)), "total": float(np.sqrt(np.mean(((ec - e_ref) / e_ref) ** 2))),
            "visibility": float("nan"), "bias": float(np.mean((ec - e_ref) / e_ref)), "contacts": True}
     print(row, flush=True)
@@ -97,7 +100,8 @@ def write(rows: list[dict], path: Path) -> None:
     ]
     for w in rows:
         setting = ("split, " if w["contacts"] else "") + f"n={w['n']}" + (
-            f", tol={w['tol']:g}" if w["tol"] is not None else "")
+            f", tol={w['tol']:g}" if w["tol"] is not None else "") + (
+            f", angle={w['angle']:g} (default)" if w["angle"] is not None else "")
         part = w["visibility"] / w["total"] if w["total"] > 0 else float("nan")
         vis = "–" if w["contacts"] else f"{100 * w['visibility']:.3f} %"
         ratio = "–" if w["contacts"] else f"{part:.2f}"
