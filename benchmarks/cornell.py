@@ -22,9 +22,11 @@ import numpy as np
 import torch
 
 import torch_interreflect as ti
-from torch_interreflect.geometry import area_average, split_at_contacts
+from torch_interreflect.geometry import area_average
 
 from ._common import mitsuba as mr
+from ._common.ours import split_and_subdivide
+from ._common.report import rel_errors
 from ._common.timing import timed
 
 RESULTS = Path(__file__).resolve().parent / "results"
@@ -37,15 +39,13 @@ def ours(name: str, ks: list[int]) -> list[dict]:
     scene = mr.build_scene(spec)
     e_ref = np.asarray(ref["irradiance"], np.float64)
     r, radiance = float(spec["reflectance"]), float(spec["light"]["radiance"])
-    pieces, parent0 = split_at_contacts(scene)
     gen = torch.Generator().manual_seed(0)
     n_mat = len(scene.material_names)
     grey = torch.rand(VARIANTS, n_mat, generator=gen, dtype=torch.float64) * 0.8 + 0.1
     grey[0] = r
     rows = []
     for k in ks:
-        fine, parent = pieces.subdivide(k)
-        top = parent0[parent]
+        fine, top = split_and_subdivide(scene, k)
 
         def kernel(fine=fine):
             K = ti.form_factors(fine, progress=False)
@@ -57,7 +57,7 @@ def ours(name: str, ks: list[int]) -> list[dict]:
         e_all, t_all = timed(lambda K=K, refl=refl, e0=e0: ti.solve(K, refl, e0), budget=20.0, reps=2)
         ec = area_average(e1.reshape(fine.num_facets, 1), top, fine.areas, scene.num_facets).numpy().reshape(-1)
         ev = area_average(e_all[0], top, fine.areas, scene.num_facets).numpy().reshape(-1)
-        err = float(np.sqrt(np.mean(((ec - e_ref) / e_ref) ** 2)))
+        err = rel_errors(ec, e_ref)[0]
         assert np.allclose(ec, ev, rtol=1e-8)  # the batched solve's first variant is the single solve
         rows.append({"scene": name, "who": "ours", "setting": f"split + subdivide({k})", "facets": fine.num_facets,
                      "error": err, "one": t_kernel + t_one, "kernel": t_kernel, "solve": t_one,
@@ -77,7 +77,7 @@ def mitsuba(name: str, spps: list[int]) -> list[dict]:
         errs, secs = [], []
         for seed in (11, 12, 13):
             res = m.render_warm(spp, seed=seed)
-            errs.append(float(np.sqrt(np.mean(((res.irradiance - e_ref) / e_ref) ** 2))))
+            errs.append(rel_errors(res.irradiance, e_ref)[0])
             secs.append(res.seconds)
         rows.append({"scene": name, "who": "Mitsuba", "setting": f"{spp} spp", "facets": scene.num_facets,
                      "error": float(np.sqrt(np.mean(np.square(errs)))), "one": float(np.median(secs)),

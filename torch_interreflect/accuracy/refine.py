@@ -21,7 +21,7 @@ from tqdm.auto import tqdm
 from ..camera.sensor import Camera
 from ..formfactors.operator import FormFactors
 from ..geometry.contacts import split_at_contacts
-from ..geometry.scene import Scene
+from ..geometry.scene import Scene, area_average
 from ..solver.api import solve
 from . import apriori
 from .kernel import leaf_kernel
@@ -200,10 +200,8 @@ def _leaf_estimate_to_user(est: Tensor, st: Refinement) -> Tensor:
         return est
     h = st.h.detach().abs().to(torch.float64).cpu()  # type: ignore[union-attr]
     power = h.movedim(-2, 0).reshape(h.shape[-2], -1).mean(1) * st.leaves.scene.areas.detach().double().cpu()
-    contrib = torch.where(power > 0, est.nan_to_num(0.0, posinf=0.0) * power, torch.zeros_like(power))
-    num = torch.zeros(num_user, dtype=torch.float64).index_add_(0, user, contrib)
-    den = torch.zeros(num_user, dtype=torch.float64).index_add_(0, user, power)
-    return torch.where(den > 0, num / den.clamp_min(1e-300), torch.zeros_like(den))
+    est = torch.where(power > 0, est.nan_to_num(0.0, posinf=0.0), torch.zeros_like(est))
+    return area_average(est[:, None], user, power, num_user)[:, 0].nan_to_num(0.0)  # no power at all: 0
 
 
 def _update_estimate(st: Refinement, user_vals: Tensor) -> None:
