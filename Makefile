@@ -30,7 +30,8 @@ lint: $(STAMP)
 # default thread count (batched LU on torch 2.13 CPU breaks with 2 threads: the paths must not depend on 1 thread).
 test: $(STAMP) lint
 	$(BIN)/python -m pytest -q -n 2 --doctest-modules torch_interreflect tests
-	$(BIN)/python -m pytest -q -p no:cacheprovider tests/solver tests/formfactors tests/layers tests/camera tests/accuracy
+	$(BIN)/python -m pytest -q -p no:cacheprovider tests/solver tests/formfactors tests/layers tests/camera tests/accuracy \
+		tests/geometry/test_contacts.py tests/test_lights.py
 
 bench-formfactors: $(STAMP)
 	$(BIN)/python -m benchmarks.formfactors --quick

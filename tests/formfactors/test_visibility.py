@@ -94,3 +94,12 @@ def test_small_targets_get_fewer_samples():
                        PointVisibility(scene, 3, angle=1e-3)(x, torch.tensor([0]), torch.tensor([1])))
     coarse(x, torch.tensor([0]), torch.tensor([1]))
     assert coarse.rays == 16 and full.rays == 16 * 9
+
+
+@pytest.mark.parametrize("kw", [dict(visibility_samples=0), dict(visibility_samples=2.5), dict(visibility_tol=-1e-3),
+                                dict(visibility_tol=float("nan")), dict(visibility_angle=0.0),
+                                dict(visibility_angle=-0.3)])
+def test_bad_visibility_options_raise(kw):
+    scene, _ = _setup(torch.float64)
+    with pytest.raises(ti.errors.ValueRangeError, match=next(iter(kw))):
+        ti.form_factors(scene, **kw)

@@ -67,3 +67,8 @@ def test_splitting_removes_the_hidden_area_bias():
     split = (_side_irradiance(pieces, 2, parent) / ref - 1)[2:]
     assert bool((plain < -0.015).all())
     assert float(split.abs().max()) < 0.005
+
+
+def test_not_a_scene_raises():
+    with pytest.raises(TypeError, match="expects a Scene"):
+        split_at_contacts(torch.zeros(2, 4, 3))

@@ -41,7 +41,7 @@ from .memory import check_memory, dense_kernel_bytes
 from .montecarlo import monte_carlo
 from .operator import FormFactors
 from .rules import default_adjacent_order, order_for, quadrature_rule
-from .visibility import VISIBILITY_ANGLE, PointVisibility, blocker_candidates
+from .visibility import VISIBILITY_ANGLE, PointVisibility, blocker_candidates, check_visibility_options
 
 __all__ = ["PairClasses", "classify_pairs", "form_factors", "integrate_clipped", "integrate_groups", "pair_values",
            "rule_groups"]
@@ -145,6 +145,7 @@ def form_factors(
         True
     """
     _check_arguments(scene, method, occlusion, quadrature_tol, layout, backend)
+    check_visibility_options(visibility_samples, visibility_tol, visibility_angle)
     t0 = time.perf_counter()
     F = scene.num_facets
     if progress is None:

@@ -11,18 +11,20 @@ through ``F``. ``tests/formfactors/test_geometry_grad.py`` measures the bias on 
 
 from __future__ import annotations
 
+import math
 import time
 from typing import Any
 
 import torch
 from torch import Tensor
 
+from ..errors import ValueRangeError
 from ..geometry._polygon import bilinear, clip_polygons, facet_samples, plane_groups
 from ..geometry.raycast import RayCaster
 from ..geometry.scene import Scene
 from .contour import point_polygon_factor
 
-__all__ = ["VISIBILITY_ANGLE", "PointVisibility", "blocker_candidates"]
+__all__ = ["VISIBILITY_ANGLE", "PointVisibility", "blocker_candidates", "check_visibility_options"]
 
 #: Default angular size (radians) per visibility sample of a target (:class:`PointVisibility`'s ``angle``).
 VISIBILITY_ANGLE = 0.3
@@ -64,6 +66,17 @@ def blocker_candidates(sc: Scene, dom: Tensor, tgt: Tensor, eps: float) -> Tenso
     return need
 
 
+def check_visibility_options(samples: Any, tol: Any, angle: Any) -> None:
+    """Raise for visibility settings out of range: ``samples`` an integer ≥ 1, ``tol`` ``None`` or a finite number
+    ≥ 0, ``angle`` ``None`` or a finite number > 0 (radians)."""
+    if isinstance(samples, bool) or not isinstance(samples, int) or samples < 1:
+        raise ValueRangeError(f"visibility_samples must be an integer >= 1; got {samples!r}")
+    if tol is not None and not (isinstance(tol, (int, float)) and math.isfinite(tol) and tol >= 0):
+        raise ValueRangeError(f"visibility_tol must be None or a finite number >= 0; got {tol!r}")
+    if angle is not None and not (isinstance(angle, (int, float)) and math.isfinite(angle) and angle > 0):
+        raise ValueRangeError(f"visibility_angle must be None or a finite number > 0 (radians); got {angle!r}")
+
+
 def _detached(sc: Scene) -> Scene:
     """The scene without autograd history (visibility is a constant of the geometry)."""
     if not sc.corners.requires_grad:
@@ -98,6 +111,7 @@ class PointVisibility:
 
     def __init__(self, sc: Scene, n: int, caster: Any = None, *, tol: float | None = None,
                  max_levels: int = 6, angle: float | None = None) -> None:
+        check_visibility_options(n, tol, angle)
         sc = _detached(sc)
         self.caster = caster if caster is not None else RayCaster(sc)
         self.n = int(n)

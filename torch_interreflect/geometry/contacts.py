@@ -27,6 +27,8 @@ def contact_pairs(scene: Scene) -> list[tuple[int, int]]:
 
     Cost ``O(F²)`` in row blocks (no ``[F, F]`` matrix).
     """
+    if not isinstance(scene, Scene):
+        raise TypeError(f"contact_pairs expects a Scene; got {type(scene).__name__}")
     sc = scene.to(torch.float64).to("cpu")
     corners, normals = sc.corners.detach(), sc.normals.detach()
     eps = plane_eps(scene)
