@@ -169,3 +169,24 @@ def test_fused_kernel_is_fork_safe():
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert out.returncode == 0, out.stderr[-2000:]
     assert out.stdout.strip().splitlines()[-1] == "0", out.stdout + out.stderr[-2000:]
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_point_sums_match_the_torch_contour_formula(dtype):
+    """The compiled point loop equals point_polygon_factor (float64 rounding; float32 inputs computed in float64)
+    and the plane test, with many pairs sharing points and polygons."""
+    g = torch.Generator().manual_seed(0)
+    x = torch.randn(300, 3, generator=g, dtype=torch.float64) * 0.1
+    n = torch.nn.functional.normalize(torch.randn(300, 3, generator=g, dtype=torch.float64), dim=-1)
+    poly = torch.randn(40, 5, 3, generator=g, dtype=torch.float64) + torch.tensor([0.0, 0.0, 2.0], dtype=torch.float64)
+    poly[:, 4] = poly[:, 0]  # padding by a repeated corner
+    rows = torch.randint(0, 300, (5000,), generator=g)
+    which = torch.randint(0, 40, (5000,), generator=g)
+    plane = (poly[:, 0], torch.nn.functional.normalize(torch.randn(40, 3, generator=g, dtype=torch.float64), dim=-1))
+    args = (x.to(dtype), n.to(dtype), rows, poly.to(dtype), which, tuple(t.to(dtype) for t in plane))
+    f, ahead = fused.point_sums(*args, backend="fused")
+    ref, ref_ahead = fused.point_sums(*args, backend="torch", chunk=777)
+    assert f.dtype == dtype and f.shape == (5000,)
+    tol = 1e-15 if dtype == torch.float64 else 2e-7
+    assert float((f - ref).abs().max()) <= tol * float(ref.abs().max())
+    assert torch.equal(ahead, ref_ahead) and 0 < int(ahead.sum()) < 5000

@@ -195,6 +195,7 @@ def test_cli(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     (["--count", "2", "--size", "8by10"], "argument --size: expected HxW"),
     (["--count", "2", "--bounces", "0"], "argument --bounces: expected 'inf' or an integer >= 1; got '0'"),
     (["--count", "2", "--supersample", "0"], "argument --supersample: expected an integer >= 1"),
+    (["--count", "2", "--shading", "smooth"], "argument --shading: invalid choice: 'smooth'"),
     (["--count", "2", "--shard", "2/2"], "shard must satisfy 0 <= shard < num_shards"),
     (["--count", "2", "--camera", "Nikon 510O"], "unknown camera 'Nikon 510O'"),
 ])
@@ -226,3 +227,55 @@ def test_bad_configs() -> None:
         g.GeneratorConfig(bounces=(1, 2))
     with pytest.raises(ValueError, match="count"):
         g.GeneratorConfig(count=-1)
+    with pytest.raises(ValueError, match="shading must be one of"):
+        g.GeneratorConfig(shading="smooth")
+    with pytest.raises(ValueError, match="split_contacts"):
+        g.GeneratorConfig(split_contacts=1)
+    with pytest.raises(ValueError, match="visibility_samples"):
+        g.GeneratorConfig(visibility_samples=0)
+
+
+@pytest.mark.parametrize("index", range(6))
+def test_gathered_samples_agree_with_flat_ones_on_average(index: int) -> None:
+    """Gather and flat shading light the same facets. On scenes whose facets the camera sees whole (grooves, box
+    corners, W folds) image means (exposure removed) agree to within 0.4 % (measured on these six samples:
+    0.9970–1.0006), for every variant. (On meshes and boxes with blocks the visible parts of a facet need not
+    have its mean irradiance: up to 4 % apart at 64 × 64.)"""
+    cfg = g.GeneratorConfig(count=6, seed=7, scenes=("v_groove", "box_corner", "w_shape"), size=(32, 32))
+    gathered = g.render_sample(cfg, index)
+    flat = g.render_sample(g.GeneratorConfig(**{**cfg.__dict__, "shading": "flat"}), index)
+    assert gathered.metadata["num_facets"] == flat.metadata["num_facets"]
+    for b in cfg.bounces:
+        mg = gathered.images[b].mean() / gathered.metadata["exposure"]
+        mf = flat.images[b].mean() / flat.metadata["exposure"]
+        assert mg == pytest.approx(mf, rel=4e-3), (b, mg, mf)
+    # per pixel they differ: the gather varies inside facets
+    assert not np.allclose(gathered.images[None], flat.images[None], rtol=1e-3)
+
+
+def test_gathered_variants_gather_one_bounce_less() -> None:
+    """The n-bounce image gathers the (n - 1)-bounce facet irradiance: the 1-bounce image is direct light only,
+    so it is darker than the 2-bounce one everywhere, which is darker than infinite bounces."""
+    s = g.render_sample(g.GeneratorConfig(count=1, seed=3, scenes=("box_corner",), size=(12, 12)), 0)
+    b1, b2, inf = s.images[1], s.images[2], s.images[None]
+    lit = inf > 0.05 * inf.max()
+    assert np.all(b1[lit] < b2[lit]) and np.all(b2[lit] <= inf[lit] * (1 + 1e-6))
+
+
+def test_configs_of_earlier_versions_read_back_as_flat_unsplit(tmp_path: Path) -> None:
+    """A dataset.json written before ``shading`` existed made flat, unsplit samples: it reads back so, and the new
+    defaults are another configuration (the folder is not mixed)."""
+    old = CFG.to_json()
+    for k in ("shading", "split_contacts", "visibility_samples"):
+        del old[k]
+    cfg = g.GeneratorConfig.from_json(old)
+    assert (cfg.shading, cfg.split_contacts) == ("flat", False)
+    assert not cfg.same_samples(CFG)
+    assert g.GeneratorConfig.from_json(CFG.to_json()) == CFG
+
+
+def test_split_contacts_splits_the_floor_under_the_blocks() -> None:
+    cfg = g.GeneratorConfig(count=1, seed=3, scenes=("cornell",), size=(8, 8), shading="flat")
+    split = g.render_sample(cfg, 0).metadata["num_facets"]
+    whole = g.render_sample(g.GeneratorConfig(**{**cfg.__dict__, "split_contacts": False}), 0).metadata["num_facets"]
+    assert split > whole

@@ -30,7 +30,7 @@ import torch
 from torch import Tensor, nn
 
 from ..errors import ShapeError
-from ..formfactors.contour import point_polygon_factor
+from ..formfactors.fused import point_sums
 from ..formfactors.visibility import blocker_candidates
 from ..geometry._polygon import bilinear, clip_polygons, facing_others, plane_eps
 from ..geometry.raycast import RayCaster
@@ -47,11 +47,16 @@ CACHE_SIZE = 8
 _CACHE: OrderedDict[tuple, Gather] = OrderedDict()
 
 
-def _sparse(rows: Tensor, cols: Tensor, vals: Tensor, shape: tuple[int, int], dtype: torch.dtype | None) -> Tensor:
-    """COO (coalesced, float64 sums) → CSR in ``dtype``; ``dtype=None`` keeps the coalesced COO."""
+def _sparse(rows: Tensor, cols: Tensor, vals: Tensor, shape: tuple[int, int], dtype: torch.dtype | None,
+            ordered: bool = False) -> Tensor:
+    """COO (coalesced, float64 sums) → CSR in ``dtype``; ``dtype=None`` keeps the coalesced COO.
+
+    ``ordered``: the ``(row, col)`` pairs are already unique and sorted row-major (no sort needed).
+    """
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", UserWarning)  # "sparse CSR support is in beta"
-        coo = torch.sparse_coo_tensor(torch.stack([rows, cols]), vals, shape).coalesce()
+        coo = torch.sparse_coo_tensor(torch.stack([rows, cols]), vals, shape, is_coalesced=ordered)
+        coo = coo if ordered else coo.coalesce()
         return coo if dtype is None else coo.to_sparse_csr().to(dtype)
 
 
@@ -160,23 +165,18 @@ def point_form_factors(
     ys, ws, nf, xf = (ys - o).float(), ws.float(), sc.normals.float(), (x - o).float()
     pi = torch.repeat_interleave(torch.arange(x.shape[0]), front.sum(1)[h])
     pid = pair_of[h][front[h]]
-    vals = torch.empty(pi.numel(), dtype=torch.float64)
-    rays = 0
-    for s in range(0, pi.numel(), PAIR_CHUNK):
-        a, b = pi[s : s + PAIR_CHUNK], pid[s : s + PAIR_CHUNK]
-        xa, na = x[a], sc.normals[h[a]]
-        f = point_polygon_factor(xa[:, None, :], na, cpoly[b])[:, 0]
-        blk = need[b] & (f != 0)
-        if bool(blk.any()):
-            t = fj[b[blk]]
-            f[blk] = f[blk] * _visibility(caster, xf[a[blk]], nf[h[a[blk]]], ys[t], ws[t], nf[t])
-            rays += int(blk.sum()) * int(samples) ** 2
-        vals[s : s + PAIR_CHUNK] = f
     pj = fj[pid]
-    in_front = ((x[pi] - sc.centroids[pj]) * sc.normals[pj]).sum(-1) > 0
+    vals, in_front = point_sums(x, sc.normals[h], pi, cpoly, pid, (sc.centroids[fj], sc.normals[fj]))
+    blocked = torch.nonzero(need[pid] & (vals != 0)).reshape(-1)
+    for s in range(0, blocked.numel(), PAIR_CHUNK):
+        k = blocked[s : s + PAIR_CHUNK]
+        a, t = pi[k], pj[k]
+        vals[k] = vals[k] * _visibility(caster, xf[a], nf[h[a]], ys[t], ws[t], nf[t])
+    rays = int(blocked.numel()) * int(samples) ** 2
     covered = torch.zeros(x.shape[0], dtype=torch.float64).index_add_(0, pi, vals.abs())
     keep = in_front & (vals > 0)
-    factors = _sparse(pi[keep], pj[keep], vals[keep], (x.shape[0], sc.num_facets), None)
+    # pairs run point by point, facets ascending within a point: already coalesced
+    factors = _sparse(pi[keep], pj[keep], vals[keep], (x.shape[0], sc.num_facets), None, ordered=True)
     return factors, covered, {"pairs": int(pi.numel()), "rays": rays, "seconds": time.perf_counter() - t0}
 
 
@@ -266,6 +266,8 @@ class Gather(nn.Module):
         gather: ``F(x_k → j) V(x_k, j)`` at each fragment's mean hit point. Sparse CSR ``[K, F]`` (``None`` when
             built for flat shading only).
         direct: ``g0`` of the light at each fragment (see the module docstring). ``[K]`` (``None`` likewise).
+        open_sky: ``1 − Σ_j |F(x_k → j)| V(x_k, j)``, the cosine-weighted part of each fragment's hemisphere that
+            sees no facet (``g0`` of a uniform sky is ``π`` times it). ``[K]`` (``None`` likewise).
         background: Fraction of each pixel that sees no facet. ``[H, W]``.
         view: The :class:`~torch_interreflect.camera.View`; ``supersample``, ``samples``: the settings.
         info: ``pairs``, ``rays`` and ``seconds`` (per stage) of the build.
@@ -278,25 +280,29 @@ class Gather(nn.Module):
         self.height, self.width, self.num_facets = view.height, view.width, int(num_facets)
         K = frag["facet"].numel()
         p, w = frag["pixel"], frag["weight"]
-        pf = _sparse(p, torch.arange(K), w, (self.height * self.width, K), dtype)
-        cov = _sparse(p, frag["facet"], w, (self.height * self.width, self.num_facets), dtype)
+        # fragments are sorted by (pixel, facet) and unique (torch.unique of pixel · F + facet)
+        pf = _sparse(p, torch.arange(K), w, (self.height * self.width, K), dtype, ordered=True)
+        cov = _sparse(p, frag["facet"], w, (self.height * self.width, self.num_facets), dtype, ordered=True)
         self.register_buffer("pixel_fragments", pf.to(device), persistent=False)
         self.register_buffer("coverage", cov.to(device), persistent=False)
         self.register_buffer("fragment_facet", frag["facet"].to(device), persistent=False)
         self.register_buffer("background", frag["background"].to(device=device, dtype=dtype), persistent=False)
         self.register_buffer("gather", None, persistent=False)
         self.register_buffer("direct", None, persistent=False)
+        self.register_buffer("open_sky", None, persistent=False)
         self.info: dict[str, Any] = {}
 
     @property
     def num_fragments(self) -> int:
         return int(self.fragment_facet.numel())
 
-    def _set_kernel(self, factors: Tensor, direct: Tensor) -> None:
+    def _set_kernel(self, factors: Tensor, direct: Tensor, covered: Tensor) -> None:
         idx = factors.indices()
-        g = _sparse(idx[0], idx[1], factors.values(), tuple(factors.shape), self.background.dtype)
+        g = _sparse(idx[0], idx[1], factors.values(), tuple(factors.shape), self.background.dtype,
+                    ordered=factors.is_coalesced())
         self.register_buffer("gather", g.to(self.background.device), persistent=False)
         self.register_buffer("direct", direct.to(self.background), persistent=False)
+        self.register_buffer("open_sky", (1.0 - covered).clamp_min(0.0).to(self.background), persistent=False)
 
     def forward(self, reflectance: Tensor, irradiance: Tensor, spd: Tensor, camera: Camera | None = None,
                 shading: str = "gather") -> Tensor:
@@ -376,7 +382,7 @@ def gather_operator(
         factors, covered, info = point_form_factors(scene, frag["centre"], frag["facet"], samples=samples, seed=seed,
                                                     caster=op._caster)
         t0 = time.perf_counter()
-        op._set_kernel(factors, _direct(scene, light, frag, op._caster, covered, factors))
+        op._set_kernel(factors, _direct(scene, light, frag, op._caster, covered, factors), covered)
         op.info.update(pairs=info["pairs"], rays=info["rays"])
         op.info["seconds"].update(kernel=info["seconds"], direct=time.perf_counter() - t0)
         del op._frag, op._caster
@@ -414,7 +420,7 @@ def _check_spectra(op: Gather, reflectance: Tensor, irradiance: Tensor) -> tuple
 
 
 def gathered_radiance(op: Gather, reflectance: Tensor, irradiance: Tensor, spd: Tensor | None = None, *,
-                      shading: str = "gather") -> Tensor:
+                      shading: str = "gather", direct: Tensor | None = None) -> Tensor:
     """Spectral radiance images ``r(x) E(x) / π`` of a view, per pixel (W·sr⁻¹·m⁻²·nm⁻¹).
 
     ``E(x) = g0(x) S + Σ_j G[x, j] B_j`` with ``B = R E`` the facets' radiosity (``shading="gather"``), or the
@@ -429,6 +435,8 @@ def gathered_radiance(op: Gather, reflectance: Tensor, irradiance: Tensor, spd: 
         spd: The light's spectrum ``S`` as given to the solve (irradiance of a sun, radiance of a sky or area
             light, the uniform irradiance). Shape ``[..., L]``. Needed for ``"gather"``.
         shading: ``"gather"`` or ``"flat"``.
+        direct: ``g0`` per fragment in place of ``op.direct``, e.g. a mix of lights
+            ``a · op.open_sky · π + (1 − a) · op.direct``. Shape ``[K]``.
 
     Returns:
         Radiance images. Shape ``[..., L, H, W]``.
@@ -446,7 +454,11 @@ def gathered_radiance(op: Gather, reflectance: Tensor, irradiance: Tensor, spd: 
     S = torch.as_tensor(spd, dtype=E.dtype, device=E.device)
     if S.shape[-1] != E.shape[-1]:
         raise ShapeError(f"spd must be [..., L] with L = {E.shape[-1]}; got {list(S.shape)}")
-    direct = op.direct.to(device=E.device, dtype=E.dtype)
+    if direct is None:
+        direct = op.direct
+    elif direct.shape != (op.num_fragments,):
+        raise ShapeError(f"direct must be [K] with K = {op.num_fragments} (one per fragment); got {list(direct.shape)}")
+    direct = direct.to(device=E.device, dtype=E.dtype)
     e_frag = direct[:, None] * S[..., None, :] + _columns(op.gather, r * E)  # [..., K, L]
     r_frag = r.index_select(-2, op.fragment_facet.to(E.device))
     r_frag, e_frag = torch.broadcast_tensors(r_frag, e_frag)
@@ -454,10 +466,10 @@ def gathered_radiance(op: Gather, reflectance: Tensor, irradiance: Tensor, spd: 
 
 
 def gathered_image(op: Gather, reflectance: Tensor, irradiance: Tensor, spd: Tensor | None, camera: Camera, *,
-                   shading: str = "gather") -> Tensor:
+                   shading: str = "gather", direct: Tensor | None = None) -> Tensor:
     """Linear camera RGB images of a view: :func:`gathered_radiance` through the camera's sensitivities.
 
-    Arguments as for :func:`gathered_radiance`, and ``camera`` (a :class:`~torch_interreflect.camera.Camera` whose
+    Arguments as for :func:`gathered_radiance` (``direct`` included), and ``camera`` (a :class:`~torch_interreflect.camera.Camera` whose
     grid has the ``L`` wavelengths). ``shading="gather"`` (per-pixel final gather) or ``"flat"`` (one colour per facet).
 
     Returns:
@@ -474,7 +486,7 @@ def gathered_image(op: Gather, reflectance: Tensor, irradiance: Tensor, spd: Ten
         >>> gathered_image(op, r, E, S, cam).shape
         torch.Size([3, 8, 8])
     """
-    rad = gathered_radiance(op, reflectance, irradiance, spd, shading=shading)  # [..., L, H, W]
+    rad = gathered_radiance(op, reflectance, irradiance, spd, shading=shading, direct=direct)  # [..., L, H, W]
     rgb = camera(rad.movedim(-3, -1))  # [..., H, W, C]
     return rgb.movedim(-1, -3)
 

@@ -141,3 +141,18 @@ def polygon_sums(domain, normal, target, count, u, v, w, vis, vrow, out):
     for p in prange(domain.shape[0]):
         out[p] = _quad_sum(domain[p], normal[p, 0], normal[p, 1], normal[p, 2], target[p], count[p],
                            u, v, w, vis, vrow[p])
+
+
+
+@njit(cache=True, parallel=True)
+def point_factors(x, normal, rows, poly, which, centre, axis, out, ahead):
+    """Per pair ``n``: ``out[n] = F(x_r → poly[which[n]])`` with ``r = rows[n]`` (Lambert's contour formula from
+    points ``x [P, 3]`` with unit normals ``[P, 3]`` to padded polygons ``poly [Q, K, 3]``; repeated corners add
+    nothing), and ``ahead[n] = (x_r − centre_w)·axis_w > 0`` with ``w = which[n]`` (``centre``, ``axis``: ``[Q, 3]``)."""
+    K = poly.shape[1]
+    for n in prange(rows.shape[0]):
+        r = rows[n]
+        w = which[n]
+        out[n] = _contour(x[r, 0], x[r, 1], x[r, 2], normal[r, 0], normal[r, 1], normal[r, 2], poly[w], K)
+        ahead[n] = ((x[r, 0] - centre[w, 0]) * axis[w, 0] + (x[r, 1] - centre[w, 1]) * axis[w, 1]
+                    + (x[r, 2] - centre[w, 2]) * axis[w, 2]) > 0

@@ -25,7 +25,7 @@ from torch import Tensor
 from ..geometry._polygon import bilinear, clip_polygons
 from .contour import point_polygon_factor
 
-__all__ = ["Backend", "fan_sums", "fused_available", "group_sums", "resolve_backend"]
+__all__ = ["Backend", "fan_sums", "fused_available", "group_sums", "point_sums", "resolve_backend"]
 
 Backend = Literal["auto", "fused", "torch"]
 #: Visible fractions ``[R, Q]`` at points ``x [R, Q, 3]`` of pairs ``(dom [R], tgt [R])``.
@@ -245,3 +245,53 @@ def fan_sums(
             f = f * frac
         total = total + (f * jac * w).sum(1)
     return total
+
+
+def point_sums(
+    x: Tensor,
+    normal: Tensor,
+    rows: Tensor,
+    polygon: Tensor,
+    which: Tensor,
+    plane: tuple[Tensor, Tensor],
+    backend: Backend = "auto",
+    chunk: int = 1 << 16,
+) -> tuple[Tensor, Tensor]:
+    """Point-to-polygon form factors over pairs ``(x[rows[n]], polygon[which[n]])``, and which side of a plane
+    each point lies on.
+
+    The compiled loop of :func:`~torch_interreflect.formfactors.contour.point_polygon_factor` over pairs, without
+    gathering points or polygons per pair (one point and one polygon serve many pairs).
+
+    Args:
+        x: Points in metres. Shape ``[P, 3]``.
+        normal: Unit normal at each point. Shape ``[P, 3]``.
+        rows: The point of each pair (int64 in ``[0, P)``). Shape ``[N]``.
+        polygon: Polygons, each on or above the tangent plane of the points paired with it, padded by repeating
+            a corner. Shape ``[Q, K, 3]``.
+        which: The polygon of each pair (int64 in ``[0, Q)``). Shape ``[N]``.
+        plane: ``(centre [Q, 3], axis [Q, 3])``: a plane per polygon (e.g. its facet's centroid and normal).
+        backend: As for :func:`group_sums`.
+        chunk: Pairs per step of the torch path (bounds its temporaries).
+
+    Returns:
+        ``(factors, ahead)``: ``F(x_rows → polygon_which)`` (dimensionless, the dtype of ``x``) and whether
+        ``(x_rows − centre_which)·axis_which > 0`` (bool). Shape ``[N]`` each.
+    """
+    centre, axis = plane
+    if not resolve_backend(backend, x, normal, polygon):
+        outs, aheads = [], []
+        for s in range(0, rows.numel(), chunk):
+            r, w = rows[s : s + chunk], which[s : s + chunk]
+            outs.append(point_polygon_factor(x[r][:, None, :], normal[r], polygon[w])[:, 0])
+            aheads.append(((x[r] - centre[w]) * axis[w]).sum(-1) > 0)
+        if not outs:
+            return x.new_zeros(0), torch.zeros(0, dtype=torch.bool, device=x.device)
+        return torch.cat(outs), torch.cat(aheads)
+    out = torch.empty(rows.numel(), dtype=torch.float64)
+    ahead = torch.empty(rows.numel(), dtype=torch.bool)
+    if rows.numel():
+        d = [_np(t.double()) for t in (x, normal)]
+        _run(_kernels().point_factors, *d, _np(rows.long()), _np(polygon.double()), _np(which.long()),
+             _np(centre.double()), _np(axis.double()), out.numpy(), ahead.numpy())
+    return out.to(x.dtype), ahead

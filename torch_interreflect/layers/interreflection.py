@@ -22,12 +22,15 @@ from torch import Tensor, nn
 from .. import spectral
 from ..accuracy.plan import plan
 from ..camera.facet_rgb import facet_rgb
+from ..camera.gather import Gather, gather_operator, gathered_image
 from ..camera.sensor import Camera
+from ..camera.view import View
 from ..errors import ShapeError
 from ..formfactors.operator import FormFactors
 from ..formfactors.quadrature import form_factors as _compute_form_factors
 from ..geometry.scene import Scene, area_average
 from ..lights import light_geometry
+from ..solver.api import radiance, solve
 
 __all__ = ["Interreflection"]
 
@@ -56,7 +59,14 @@ class Interreflection(nn.Module):
         light: How a spectrum becomes ``E0`` (module docstring): ``"uniform"`` (default), ``"sky"``, a direction
             ``[3]``, a material name / facet mask (area light), or ``g [F]``.
         projection: A :class:`~torch_interreflect.imaging.Projection` (from
-            :func:`~torch_interreflect.imaging.project`); when set, ``forward`` also returns images.
+            :func:`~torch_interreflect.imaging.project`); when set, ``forward`` also returns images (one colour
+            per facet).
+        view: A :class:`~torch_interreflect.camera.View`; when set, ``forward`` also returns images shaded per
+            pixel (:func:`~torch_interreflect.camera.gather_operator` of the scene, view and ``light``, built once
+            here). Needs a scene and a spectrum ``illuminant`` in ``forward``; not with ``projection`` or
+            ``accuracy``.
+        shading: With ``view``: ``"gather"`` (per-pixel final gather, the default) or ``"flat"`` (one colour per
+            facet).
         reflectance_model: Optional module mapping the first input (e.g. basis coefficients ``[..., K]`` or RGB
             ``[..., 3]``) to reflectance ``[..., L]`` (:class:`ReflectanceBasis`, :class:`RGBToSpectrum`, ...).
         per_material: The reflectance input is per material ``[..., M, ·]`` and is expanded to facets with the
@@ -75,7 +85,8 @@ class Interreflection(nn.Module):
         - reflectance: ``[B, F, L]`` (or ``[F, L]``; ``[B, M, ·]`` with ``per_material``; the model's input shape
           with ``reflectance_model``)
         - illuminant: spectrum ``[B, L]`` or ``[L]``; or ``E0 = [B, F, L]`` / ``[F, L]`` by keyword
-        - output: camera RGB ``[B, F, 3]``; with a projection, ``(rgb, image [B, 3, H, W])``
+        - output: camera RGB ``[B, F, 3]``; with a projection, ``(rgb, image [B, 3, H, W])``; with a view,
+          ``(rgb [..., F, 3], image [..., 3, H, W])``
 
     Example:
         >>> import torch, torch_interreflect as ti
@@ -104,6 +115,8 @@ class Interreflection(nn.Module):
         bounces: int | None = None,
         light: str | Tensor | Sequence[float] = "uniform",
         projection: nn.Module | None = None,
+        view: View | None = None,
+        shading: str = "gather",
         reflectance_model: nn.Module | None = None,
         per_material: bool = False,
         tol: float = 1e-6,
@@ -134,6 +147,15 @@ class Interreflection(nn.Module):
         self.reflectance_model = reflectance_model
         self.light = light if isinstance(light, str) else "custom"
         self._register(ff, scene, n_facets, refined, light, shadows)
+        self.shading = shading
+        self.gather_view: Gather | None = None
+        if view is not None:
+            if scene is None or projection is not None or accuracy is not None:
+                raise ValueError("view= needs a Scene and goes without projection= and accuracy= (for a refined "
+                                 "scene's image use torch_interreflect.render(..., view=...))")
+            if shading not in ("gather", "flat"):
+                raise ValueError(f"shading must be 'gather' or 'flat'; got {shading!r}")
+            self.gather_view = gather_operator(scene, view, light, shading=shading).to(ff.device)
 
     def _register(
         self, ff: FormFactors, scene: Scene | None, n_facets: int, refined: Any, light: Any, shadows: str | bool
@@ -245,6 +267,8 @@ class Interreflection(nn.Module):
             r = r.index_select(-2, self.leaf_user)
             if illuminant is None:
                 e0 = e0.index_select(-2, self.leaf_user)  # type: ignore[union-attr]
+        if self.gather_view is not None:
+            return self._view_forward(r, e0, illuminant)
         rgb = facet_rgb(self.form_factors, r, e0, self.camera, bounces=self.bounces, tol=self.tol, method=self.method)
         if self.leaf_user is not None:
             rgb = area_average(rgb, self.leaf_user, self.areas, self.num_facets)
@@ -252,6 +276,20 @@ class Interreflection(nn.Module):
             return rgb
         flat = rgb.reshape(-1, *rgb.shape[-2:])
         return rgb, self.projection(flat)
+
+    def _view_forward(self, r: Tensor, e0: Tensor, illuminant: Tensor | None) -> tuple[Tensor, Tensor]:
+        """``(rgb [..., F, 3], image [..., 3, H, W])`` through the view's gather operator."""
+        if illuminant is None:
+            raise ValueError("a layer with a view needs illuminant= (the spectrum the per-pixel light is scaled by), "
+                             "not E0=")
+        E = solve(self.form_factors, r, e0, bounces=self.bounces, tol=self.tol, method=self.method)
+        rgb = self.camera(radiance(E, r))
+        b = self.bounces
+        if self.shading == "gather" and b is not None:  # the gather adds the last bounce: it gathers E of b - 1
+            E = solve(self.form_factors, r, e0, bounces=b - 1, tol=self.tol, method=self.method) if b > 1 else (
+                torch.zeros_like(E))
+        image = gathered_image(self.gather_view, r, E, illuminant, self.camera, shading=self.shading)
+        return rgb, image
 
     def extra_repr(self) -> str:
         layout = "sparse" if self.matrix.layout != torch.strided else "dense"

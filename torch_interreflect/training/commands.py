@@ -17,7 +17,7 @@ from collections.abc import Callable, Sequence
 from typing import Any, NoReturn
 
 from . import argtypes
-from .config import GeneratorConfig
+from .config import SHADINGS, GeneratorConfig
 from .generator import generate
 from .random_scenes import ILLUMINANT_KINDS, SCENE_KINDS
 from .train import TrainConfig, run_train_cc
@@ -70,6 +70,12 @@ def add_generate_parser(sub: Any) -> argparse.ArgumentParser:
                    help="variants: inf (always written) and n-bounce models, e.g. 1 (direct only) 2 (default: inf 1 2)")
     p.add_argument("--supersample", type=argtypes.positive_int, default=2,
                    help="sub-pixels per pixel side (default 2)")
+    p.add_argument("--shading", choices=SHADINGS, default="gather",
+                   help="gather: per-pixel final gather, soft shadows (default); flat: one colour per facet, faster")
+    p.add_argument("--no-split-contacts", action="store_true",
+                   help="do not split facets where another facet stands on them (the behaviour of 0.1.0)")
+    p.add_argument("--visibility-samples", type=argtypes.positive_int, default=2,
+                   help="with gather: visibility rays per side of a target facet that may be blocked (default 2)")
     p.add_argument("--no-geometry", action="store_true", help="do not write the _geometry.npz files")
     p.add_argument("--no-progress", action="store_true", help="hide the progress bar")
     p.set_defaults(func=_run_generate)
@@ -80,7 +86,8 @@ def _run_generate(args: argparse.Namespace) -> int:
     config = GeneratorConfig(
         count=args.count, seed=args.seed, scenes=tuple(args.scenes), illuminants=tuple(args.illuminants),
         camera=args.camera, size=args.size, bounces=tuple(dict.fromkeys([None, *args.bounces])),
-        supersample=args.supersample, geometry=not args.no_geometry,
+        supersample=args.supersample, geometry=not args.no_geometry, shading=args.shading,
+        split_contacts=not args.no_split_contacts, visibility_samples=args.visibility_samples,
     )
     res = generate(args.out, config, shard=args.shard, progress=not args.no_progress)
     removed = f", removed {len(res.removed)} stale temporary files" if res.removed else ""

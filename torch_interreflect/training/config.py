@@ -14,6 +14,7 @@ from .random_scenes import ILLUMINANT_KINDS, SCENE_KINDS
 __all__ = [
     "CONFIG_FILE",
     "MANIFEST_DIR",
+    "SHADINGS",
     "GeneratorConfig",
     "parse_shard",
     "sample_files",
@@ -25,6 +26,10 @@ __all__ = [
 CONFIG_FILE = "dataset.json"
 #: The folder of the per-shard manifests.
 MANIFEST_DIR = "manifest"
+#: Image shadings of :attr:`GeneratorConfig.shading`.
+SHADINGS: tuple[str, ...] = ("gather", "flat")
+#: Values of fields added after the first release, for configurations stored before them.
+_BEFORE_FIELD: dict[str, Any] = {"shading": "flat", "split_contacts": False}
 
 
 def _check_int(name: str, value: Any, low: int) -> int:
@@ -49,6 +54,17 @@ class GeneratorConfig:
         wavelengths: ``(start, stop, step)`` of the grid in nm.
         geometry: Also write the ``_geometry.npz`` file.
         basis_components: Components of the reflectance PCA basis random spectra are drawn from.
+        shading: ``"gather"`` (per-pixel final gather: irradiance varies inside a facet, soft shadows, as in a
+            path tracer's image) or ``"flat"`` (one colour per facet, the only mode of 0.1.0; faster).
+        split_contacts: Split facets where another facet stands on them
+            (:func:`~torch_interreflect.geometry.split_at_contacts`) before the form factors, so the floor under a
+            block does not share the radiosity of its lit part.
+        visibility_samples: With ``"gather"``: visibility rays per side of a target facet for pairs a third
+            facet could block (``samples²`` rays per pixel and facet; see
+            :func:`~torch_interreflect.camera.point_form_factors`).
+
+    Folders written before ``shading`` and ``split_contacts`` existed read back as ``"flat"`` and ``False`` (what
+    made their bytes), so growing such a folder still adds samples of the same kind.
 
     Raises:
         ValueError: a field out of its range (the message names the field, what it must be and what came).
@@ -65,6 +81,9 @@ class GeneratorConfig:
     wavelengths: tuple[float, float, float] = (400.0, 700.0, 10.0)
     geometry: bool = True
     basis_components: int = 6
+    shading: str = "gather"
+    split_contacts: bool = True
+    visibility_samples: int = 2
 
     def __post_init__(self) -> None:
         _check_int("count", self.count, 0)
@@ -86,6 +105,11 @@ class GeneratorConfig:
         object.__setattr__(self, "bounces", (None, *sorted(v for v in b if v is not None)))
         _check_int("supersample", self.supersample, 1)
         _check_int("basis_components", self.basis_components, 1)
+        if self.shading not in SHADINGS:
+            raise ValueError(f"shading must be one of {list(SHADINGS)}; got {self.shading!r}")
+        if not isinstance(self.split_contacts, bool):
+            raise ValueError(f"split_contacts must be True or False; got {self.split_contacts!r}")
+        _check_int("visibility_samples", self.visibility_samples, 1)
         object.__setattr__(self, "wavelengths", tuple(float(v) for v in self.wavelengths))
 
     def same_samples(self, other: GeneratorConfig) -> bool:
@@ -107,6 +131,8 @@ class GeneratorConfig:
         d["bounces"] = tuple(None if v == "inf" else int(v) for v in d["bounces"])
         d["size"] = tuple(d["size"])
         d["wavelengths"] = tuple(d["wavelengths"])
+        for name, old in _BEFORE_FIELD.items():  # folders of earlier versions: what made their bytes
+            d.setdefault(name, old)
         fields = {f.name for f in dataclasses.fields(cls)}
         return cls(**{k: v for k, v in d.items() if k in fields})
 

@@ -19,10 +19,13 @@ from torch import Tensor
 
 from .. import spectral
 from .._version import __version__
+from ..camera.gather import gather_operator, gathered_image
 from ..camera.projection import project
 from ..camera.sensor import Camera
+from ..camera.view import View
 from ..errors import SpectralDataError
 from ..formfactors.quadrature import form_factors
+from ..geometry.contacts import split_at_contacts
 from ..solver.api import radiance, solve
 from ..spectral.reflectances import fit_reflectance_basis, reflectance_data
 from .config import GeneratorConfig, sample_files, variant_suffix
@@ -109,6 +112,8 @@ class _Drawn:
 def _draw(config: GeneratorConfig, index: int, res: dict[str, Any]) -> _Drawn:
     rng = np.random.default_rng([config.seed, index])
     scene, scene_params = random_scene(rng, config.scenes)
+    if config.split_contacts:
+        scene = split_at_contacts(scene)[0]  # draws nothing: the random numbers below stay the same
     K = form_factors(scene)
     names = scene.material_names or ["all"]
     material = scene.material if scene.material is not None else torch.zeros(scene.num_facets, dtype=torch.long)
@@ -123,24 +128,56 @@ def _draw(config: GeneratorConfig, index: int, res: dict[str, Any]) -> _Drawn:
 def _render_variants(
     config: GeneratorConfig, d: _Drawn, cam: Camera, device: torch.device | None
 ) -> tuple[dict[int | None, np.ndarray], float, Any]:
-    """Images per variant times the exposure (float32 ``[H, W, 3]``), the exposure, and the projection."""
-    h, w = config.size
-    proj = project(d.scene, (d.view["eye"], d.view["target"]), h, w, up=d.view["up"], fov_deg=d.view["fov_deg"],
-                   supersample=config.supersample)
+    """Images per variant times the exposure (float32 ``[H, W, 3]``), the exposure, and the view's geometry (an
+    object with ``coverage [H·W, F]`` and ``background [H, W]``)."""
     K, r, e0, cam_d = d.K, d.refl[d.material], d.g[:, None] * d.spd[None, :], cam  # r, e0: [F, L]
     if device is not None:
         K, r, e0, cam_d = K.to(device), r.to(device), e0.to(device), copy.deepcopy(cam).to(device)
-    raw: dict[int | None, Tensor] = {}
-    for b in config.bounces:
-        E = solve(K, r, e0, bounces=b)
-        rgb = cam_d(radiance(E, r)).cpu()  # [F, 3]
-        raw[b] = proj(rgb)[0].permute(1, 2, 0)  # [H, W, 3]
-    p99 = float(torch.quantile(raw[None].reshape(-1), 0.99))
+    raw = (_gathered if config.shading == "gather" else _flat)(config, d, K, r, e0, cam_d)
+    p99 = float(torch.quantile(raw[None][0].reshape(-1), 0.99))
     exposure = 0.9 / p99 if p99 > 0 else 1.0
     tiny = float(np.finfo(np.float32).tiny)  # flush float32 subnormals (they slow CPU arithmetic downstream)
     images = {b: np.where(np.abs(a := (im * exposure).numpy()) < tiny, 0.0, a).astype(np.float32)
-              for b, im in raw.items()}
-    return images, exposure, proj
+              for b, (im, _) in raw.items()}
+    return images, exposure, raw[None][1]
+
+
+def _flat(config: GeneratorConfig, d: _Drawn, K: Any, r: Tensor, e0: Tensor, cam: Camera) -> dict[int | None, Any]:
+    """One colour per facet: ``{variant: (image [H, W, 3], projection)}``."""
+    h, w = config.size
+    proj = project(d.scene, (d.view["eye"], d.view["target"]), h, w, up=d.view["up"], fov_deg=d.view["fov_deg"],
+                   supersample=config.supersample)
+    raw = {}
+    for b in config.bounces:
+        rgb = cam(radiance(solve(K, r, e0, bounces=b), r)).cpu()  # [F, 3]
+        raw[b] = (proj(rgb)[0].permute(1, 2, 0), proj)  # [H, W, 3]
+    return raw
+
+
+def _gathered(config: GeneratorConfig, d: _Drawn, K: Any, r: Tensor, e0: Tensor,
+              cam: Camera) -> dict[int | None, Any]:
+    """Per-pixel final gather: ``{variant: (image [H, W, 3], gather operator)}``.
+
+    The light mixes an ambient part (uniform, or the sky's open fraction at each point) and the sun (shadow ray per
+    sub-pixel ray) with the sample's weight, as ``g`` does per facet. The ``n``-bounce variant gathers the
+    ``(n − 1)``-bounce facet irradiance (none for ``n = 1``: direct light only).
+    """
+    h, w = config.size
+    v, light = d.view, d.params["light"]
+    view = View(v["eye"], v["target"], v["up"], fov_deg=v["fov_deg"], height=h, width=w)
+    sun = torch.tensor(light["sun_direction"], dtype=torch.float64)
+    op = gather_operator(d.scene, view, sun, supersample=config.supersample, samples=config.visibility_samples,
+                         cache=False)
+    ambient = torch.ones_like(op.direct) if light["ambient"] == "uniform" else op.open_sky
+    a = light["ambient_weight"]
+    direct = a * ambient + (1.0 - a) * op.direct  # [K], as g = a g_ambient + (1 - a) g_sun per facet
+    raw = {}
+    for b in config.bounces:
+        E = solve(K, r, e0, bounces=b - 1) if b is not None and b > 1 else (
+            torch.zeros_like(e0) if b == 1 else solve(K, r, e0))
+        image = gathered_image(op, r, E, d.spd.to(e0), cam, direct=direct).cpu()  # [3, H, W]
+        raw[b] = (image.permute(1, 2, 0), op)
+    return raw
 
 
 def _metadata(config: GeneratorConfig, index: int, d: _Drawn, white: Tensor, exposure: float,
@@ -210,7 +247,7 @@ def render_sample(config: GeneratorConfig, index: int, *, device: torch.device |
     res = load_resources(config)
     d = _draw(config, index, res)
     dev = None if device is None else torch.device(device)
-    images, exposure, proj = _render_variants(config, d, res["camera"], dev)
+    images, exposure, view_geometry = _render_variants(config, d, res["camera"], dev)
     white = res["camera"](d.spd[None, :] / math.pi)[0]  # camera RGB of a perfect white diffuser under the illuminant
     meta = _metadata(config, index, d, white, exposure, res["wl"])
-    return Sample(index, images, meta, _geometry(d, proj) if config.geometry else {})
+    return Sample(index, images, meta, _geometry(d, view_geometry) if config.geometry else {})
