@@ -469,8 +469,9 @@ def gathered_image(op: Gather, reflectance: Tensor, irradiance: Tensor, spd: Ten
                    shading: str = "gather", direct: Tensor | None = None) -> Tensor:
     """Linear camera RGB images of a view: :func:`gathered_radiance` through the camera's sensitivities.
 
-    Arguments as for :func:`gathered_radiance` (``direct`` included), and ``camera`` (a :class:`~torch_interreflect.camera.Camera` whose
-    grid has the ``L`` wavelengths). ``shading="gather"`` (per-pixel final gather) or ``"flat"`` (one colour per facet).
+    Arguments as for :func:`gathered_radiance` (``direct`` included), and ``camera`` (a
+    :class:`~torch_interreflect.camera.Camera` whose grid has the ``L`` wavelengths). ``shading="gather"``
+    (per-pixel final gather) or ``"flat"`` (one colour per facet).
 
     Returns:
         Camera RGB. Shape ``[..., C, H, W]`` (``[3, H, W]`` for unbatched inputs).

@@ -148,7 +148,8 @@ def polygon_sums(domain, normal, target, count, u, v, w, vis, vrow, out):
 def point_factors(x, normal, rows, poly, which, centre, axis, out, ahead):
     """Per pair ``n``: ``out[n] = F(x_r → poly[which[n]])`` with ``r = rows[n]`` (Lambert's contour formula from
     points ``x [P, 3]`` with unit normals ``[P, 3]`` to padded polygons ``poly [Q, K, 3]``; repeated corners add
-    nothing), and ``ahead[n] = (x_r − centre_w)·axis_w > 0`` with ``w = which[n]`` (``centre``, ``axis``: ``[Q, 3]``)."""
+    nothing), and ``ahead[n] = (x_r − centre_w)·axis_w > 0`` with ``w = which[n]`` (``centre``, ``axis``:
+    ``[Q, 3]``)."""
     K = poly.shape[1]
     for n in prange(rows.shape[0]):
         r = rows[n]
