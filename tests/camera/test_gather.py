@@ -193,3 +193,27 @@ def test_errors_and_cache() -> None:
         gathered_radiance(op, r, r)
     with pytest.raises(ValueError, match="material name"):
         gather_operator(scene, v, "lamp")
+
+
+def test_stride_interpolates_the_gather_within_facets() -> None:
+    """``stride=2`` gathers at a quarter of the points and interpolates within each facet: on a V-groove under a
+    sun the image stays within 0.6 % RMS of the full gather (measured 0.47 %; worst pixel 8 %, beside the concave
+    edge where the irradiance is steepest)."""
+    scene = ti.scenes.v_groove(90.0, size=(0.1, 0.1), divisions=2, dtype=torch.float64)
+    c = scene.centroids[:4].mean(0)
+    v = View(tuple((c + 2.0 * scene.normals[0]).tolist()), tuple(c.tolist()), up=(0, 1, 0), fov_deg=4.0, height=48,
+             width=48)
+    d = [-1.0, 0.3, -1.0]
+    full, coarse = gather_operator(scene, v, d), gather_operator(scene, v, d, stride=2)
+    assert coarse.info["points"] * 3 < full.info["points"] == full.num_fragments
+    assert torch.equal(coarse.direct, full.direct)  # the sun stays per ray
+    r = torch.full((scene.num_facets, 1), 0.8, dtype=torch.float64)
+    K = ti.form_factors(scene)
+    E = ti.solve(K, r, ti.lights.directional(scene, torch.tensor(d), torch.ones(1, dtype=torch.float64)))
+    S = torch.ones(1, dtype=torch.float64)
+    a, b = gathered_radiance(full, r, E, S)[0], gathered_radiance(coarse, r, E, S)[0]
+    lit = a > 0
+    rel = (b - a)[lit] / a[lit]
+    assert 1e-3 < float(rel.square().mean().sqrt()) < 6e-3
+    with pytest.raises(ValueError, match="stride must be an integer >= 1"):
+        gather_operator(scene, v, d, stride=0)

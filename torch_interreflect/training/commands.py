@@ -76,6 +76,8 @@ def add_generate_parser(sub: Any) -> argparse.ArgumentParser:
                    help="do not split facets where another facet stands on them (the behaviour of 0.1.0)")
     p.add_argument("--visibility-samples", type=argtypes.positive_int, default=2,
                    help="with gather: visibility rays per side of a target facet that may be blocked (default 2)")
+    p.add_argument("--gather-stride", type=argtypes.positive_int, default=1,
+                   help="with gather: gather every n pixels per side and interpolate (faster, less exact; default 1)")
     p.add_argument("--no-geometry", action="store_true", help="do not write the _geometry.npz files")
     p.add_argument("--no-progress", action="store_true", help="hide the progress bar")
     p.set_defaults(func=_run_generate)
@@ -88,6 +90,7 @@ def _run_generate(args: argparse.Namespace) -> int:
         camera=args.camera, size=args.size, bounces=tuple(dict.fromkeys([None, *args.bounces])),
         supersample=args.supersample, geometry=not args.no_geometry, shading=args.shading,
         split_contacts=not args.no_split_contacts, visibility_samples=args.visibility_samples,
+        gather_stride=args.gather_stride,
     )
     res = generate(args.out, config, shard=args.shard, progress=not args.no_progress)
     removed = f", removed {len(res.removed)} stale temporary files" if res.removed else ""

@@ -62,6 +62,8 @@ class GeneratorConfig:
         visibility_samples: With ``"gather"``: visibility rays per side of a target facet for pairs a third
             facet could block (``samples²`` rays per pixel and facet; see
             :func:`~torch_interreflect.camera.point_form_factors`).
+        gather_stride: With ``"gather"``: gather at one point per ``stride × stride`` pixels and facet, and
+            interpolate (``stride`` of :func:`~torch_interreflect.camera.gather_operator`); 1 gathers at every pixel.
 
     Folders written before ``shading`` and ``split_contacts`` existed read back as ``"flat"`` and ``False`` (what
     made their bytes), so growing such a folder still adds samples of the same kind.
@@ -84,6 +86,7 @@ class GeneratorConfig:
     shading: str = "gather"
     split_contacts: bool = True
     visibility_samples: int = 2
+    gather_stride: int = 1
 
     def __post_init__(self) -> None:
         _check_int("count", self.count, 0)
@@ -110,6 +113,7 @@ class GeneratorConfig:
         if not isinstance(self.split_contacts, bool):
             raise ValueError(f"split_contacts must be True or False; got {self.split_contacts!r}")
         _check_int("visibility_samples", self.visibility_samples, 1)
+        _check_int("gather_stride", self.gather_stride, 1)
         object.__setattr__(self, "wavelengths", tuple(float(v) for v in self.wavelengths))
 
     def same_samples(self, other: GeneratorConfig) -> bool:

@@ -167,7 +167,7 @@ def _gathered(config: GeneratorConfig, d: _Drawn, K: Any, r: Tensor, e0: Tensor,
     view = View(v["eye"], v["target"], v["up"], fov_deg=v["fov_deg"], height=h, width=w)
     sun = torch.tensor(light["sun_direction"], dtype=torch.float64)
     op = gather_operator(d.scene, view, sun, supersample=config.supersample, samples=config.visibility_samples,
-                         cache=False)
+                         stride=config.gather_stride, cache=False)
     ambient = torch.ones_like(op.direct) if light["ambient"] == "uniform" else op.open_sky
     a = light["ambient_weight"]
     direct = a * ambient + (1.0 - a) * op.direct  # [K], as g = a g_ambient + (1 - a) g_sun per facet
