@@ -7,7 +7,8 @@ STAMP  := $(VENV)/.installed-dev
 OUT    ?= out
 
 .PHONY: install demo train-cc test lint bench bench-install bench-speed bench-solver bench-formfactors \
-	bench-accuracy bench-hierarchical bench-hierarchical-quick bench-images bench-kernel clean
+	bench-accuracy bench-hierarchical bench-hierarchical-quick bench-images bench-variants bench-generator bench-kernel \
+	clean
 
 $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
@@ -53,6 +54,12 @@ bench-accuracy: $(STAMP)
 
 bench-images: bench-install
 	DRJIT_LIBLLVM_PATH=$${DRJIT_LIBLLVM_PATH:-libLLVM.so.19.1} $(BIN)/python -m benchmarks.images --quick
+
+bench-variants: bench-install
+	DRJIT_LIBLLVM_PATH=$${DRJIT_LIBLLVM_PATH:-libLLVM.so.19.1} $(BIN)/python -m benchmarks.variants --quick
+
+bench-generator: $(STAMP)
+	$(BIN)/python -m benchmarks.generator
 
 bench-install: $(STAMP)
 	command -v apt-get >/dev/null && (apt-get update -qq && apt-get install -y -qq libllvm19) || true

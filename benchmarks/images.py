@@ -130,10 +130,12 @@ def interior_mask(scene: ti.Scene, view: View, s: int = SUPERSAMPLE) -> np.ndarr
 
 # ------------------------------------------------------------------------------------------------ Mitsuba
 class MitsubaImage:
-    def __init__(self, scene: ti.Scene, light, view: View) -> None:
+    def __init__(self, scene: ti.Scene, light, view: View, refl: np.ndarray | None = None) -> None:
+        """``refl``: grey reflectance per facet ``[F]`` (default :func:`reflectance`)."""
         ml = mr.Sky(1.0 / math.pi) if light == "sky" else mr.Directional(tuple(light), 1.0)
         t0 = time.perf_counter()
-        self.ref = mr.MitsubaReference(scene, reflectance(scene)[:, 0].numpy(), ml)
+        refl = reflectance(scene)[:, 0].numpy() if refl is None else np.asarray(refl, dtype=np.float64)
+        self.ref = mr.MitsubaReference(scene, refl, ml)
         mi = self.mi = self.ref.mi
         eye = (np.asarray(view.eye) - self.ref.centre) * self.ref.scale
         tgt = (np.asarray(view.target) - self.ref.centre) * self.ref.scale
@@ -155,6 +157,7 @@ class MitsubaImage:
 
 
 def reference(name: str, m: MitsubaImage, view: View, spp: int) -> dict:
+    """Two renders of ``spp`` (seeds 1001, 2002), cached as ``references/images/{name}_{H}x{W}_{spp}.npz``."""
     path = REF_DIR / f"{name}_{view.height}x{view.width}_{spp}.npz"
     if path.exists():
         z = np.load(path)

@@ -156,15 +156,19 @@ def point_form_factors(
     # every point of facet i has i's tangent plane: clip each target once per facet pair, not per point
     cpoly = clip_polygons(sc.corners[fj], sc.centroids[fi], sc.normals[fi], eps)
     cpoly = cpoly[:, : max(3, int(_real_vertices(cpoly, eps).max()) if fi.numel() else 3)]
-    pair_of = torch.full(front.shape, -1, dtype=torch.int64)
-    pair_of[fi, fj] = torch.arange(fi.numel())
     caster = caster if caster is not None else RayCaster(sc)
     gen = torch.Generator().manual_seed(int(seed))
     o = torch.as_tensor(caster.origin)
     ys, ws = _target_samples(sc.corners, int(samples), gen)
     ys, ws, nf, xf = (ys - o).float(), ws.float(), sc.normals.float(), (x - o).float()
-    pi = torch.repeat_interleave(torch.arange(x.shape[0]), front.sum(1)[h])
-    pid = pair_of[h][front[h]]
+    # pairs (point, facet in front of its facet), point by point; facet pairs (fi, fj) are row-major, so the pairs
+    # of facet i are fi's run starting at first[i]
+    per_facet = front.sum(1)
+    first = torch.cumsum(per_facet, 0) - per_facet
+    counts = per_facet[h]
+    pi = torch.repeat_interleave(torch.arange(x.shape[0]), counts)
+    start = torch.cumsum(counts, 0) - counts
+    pid = first[h][pi] + torch.arange(pi.numel()) - start[pi]
     pj = fj[pid]
     vals, in_front = point_sums(x, sc.normals[h], pi, cpoly, pid, (sc.centroids[fj], sc.normals[fj]))
     blocked = torch.nonzero(need[pid] & (vals != 0)).reshape(-1)

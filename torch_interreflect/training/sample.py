@@ -171,13 +171,10 @@ def _gathered(config: GeneratorConfig, d: _Drawn, K: Any, r: Tensor, e0: Tensor,
     ambient = torch.ones_like(op.direct) if light["ambient"] == "uniform" else op.open_sky
     a = light["ambient_weight"]
     direct = a * ambient + (1.0 - a) * op.direct  # [K], as g = a g_ambient + (1 - a) g_sun per facet
-    raw = {}
-    for b in config.bounces:
-        E = solve(K, r, e0, bounces=b - 1) if b is not None and b > 1 else (
-            torch.zeros_like(e0) if b == 1 else solve(K, r, e0))
-        image = gathered_image(op, r, E, d.spd.to(e0), cam, direct=direct).cpu()  # [3, H, W]
-        raw[b] = (image.permute(1, 2, 0), op)
-    return raw
+    E = torch.stack([solve(K, r, e0, bounces=b - 1) if b is not None and b > 1 else (
+        torch.zeros_like(e0) if b == 1 else solve(K, r, e0)) for b in config.bounces])  # [V, F, L]
+    images = gathered_image(op, r, E, d.spd.to(e0), cam, direct=direct).cpu()  # [V, 3, H, W], one sparse product
+    return {b: (images[k].permute(1, 2, 0), op) for k, b in enumerate(config.bounces)}
 
 
 def _metadata(config: GeneratorConfig, index: int, d: _Drawn, white: Tensor, exposure: float,
