@@ -157,3 +157,143 @@ def point_factors(x, normal, rows, poly, which, centre, axis, out, ahead):
         out[n] = _contour(x[r, 0], x[r, 1], x[r, 2], normal[r, 0], normal[r, 1], normal[r, 2], poly[w], K)
         ahead[n] = ((x[r, 0] - centre[w, 0]) * axis[w, 0] + (x[r, 1] - centre[w, 1]) * axis[w, 1]
                     + (x[r, 2] - centre[w, 2]) * axis[w, 2]) > 0
+
+
+@njit(cache=True, inline="always")
+def _edge_grad(ax, ay, az, bx, by, bz, n0, n1, n2, coef, out):
+    """``coef ·`` gradients of one edge term ``γ (c·n)/|c|`` (``c = a × b``, ``γ = ∠(a, b)``) of the contour formula
+    with respect to ``a``, ``b`` and ``n``: written to ``out[0:3]``, ``out[3:6]``, ``out[6:9]`` (zero for a
+    degenerate edge, which the forward skips)."""
+    cx = ay * bz - az * by
+    cy = az * bx - ax * bz
+    cz = ax * by - ay * bx
+    s = math.sqrt(cx * cx + cy * cy + cz * cz)
+    if s <= _TINY:
+        for k in range(9):
+            out[k] = 0.0
+        return
+    d = ax * bx + ay * by + az * bz
+    gamma = math.atan2(s, d)
+    cn = cx * n0 + cy * n1 + cz * n2
+    h = cn / s
+    # ∇_a s = (b × c)/s, ∇_b s = (c × a)/s
+    sax = (by * cz - bz * cy) / s
+    say = (bz * cx - bx * cz) / s
+    saz = (bx * cy - by * cx) / s
+    sbx = (cy * az - cz * ay) / s
+    sby = (cz * ax - cx * az) / s
+    sbz = (cx * ay - cy * ax) / s
+    den = s * s + d * d
+    # ∇γ = (d ∇s − s ∇d)/(s² + d²), ∇_a d = b, ∇_b d = a
+    gax = (d * sax - s * bx) / den
+    gay = (d * say - s * by) / den
+    gaz = (d * saz - s * bz) / den
+    gbx = (d * sbx - s * ax) / den
+    gby = (d * sby - s * ay) / den
+    gbz = (d * sbz - s * az) / den
+    # ∇_a h = (b × n)/s − h ∇_a s / s, ∇_b h = (n × a)/s − h ∇_b s / s
+    hax = (by * n2 - bz * n1) / s - h * sax / s
+    hay = (bz * n0 - bx * n2) / s - h * say / s
+    haz = (bx * n1 - by * n0) / s - h * saz / s
+    hbx = (n1 * az - n2 * ay) / s - h * sbx / s
+    hby = (n2 * ax - n0 * az) / s - h * sby / s
+    hbz = (n0 * ay - n1 * ax) / s - h * sbz / s
+    out[0] = coef * (h * gax + gamma * hax)
+    out[1] = coef * (h * gay + gamma * hay)
+    out[2] = coef * (h * gaz + gamma * haz)
+    out[3] = coef * (h * gbx + gamma * hbx)
+    out[4] = coef * (h * gby + gamma * hby)
+    out[5] = coef * (h * gbz + gamma * hbz)
+    out[6] = coef * gamma * cx / s
+    out[7] = coef * gamma * cy / s
+    out[8] = coef * gamma * cz / s
+
+
+@njit(cache=True, parallel=True)
+def polygon_sums_grad(domain, normal, target, count, u, v, w, vis, vrow, gout, gdom, gnorm, gtgt):
+    """Adjoint of :func:`polygon_sums`: ``gout [P]`` (∂loss/∂out) → ∂loss/∂domain ``[P, 4, 3]``, ∂loss/∂normal
+    ``[P, 3]``, ∂loss/∂target ``[P, K, 3]`` (written, not accumulated). The visible fractions are constants."""
+    for p in prange(domain.shape[0]):
+        dom = domain[p]
+        n0 = normal[p, 0]
+        n1 = normal[p, 1]
+        n2 = normal[p, 2]
+        poly = target[p]
+        cnt = count[p]
+        e = np.empty(9)
+        gd = np.zeros((4, 3))
+        gn = np.zeros(3)
+        gt = np.zeros((poly.shape[0], 3))
+        for q in range(u.shape[0]):
+            uu = u[q]
+            vv = v[q]
+            a = (1 - uu) * (1 - vv)
+            b = uu * (1 - vv)
+            c = uu * vv
+            ee = (1 - uu) * vv
+            x0 = a * dom[0, 0] + b * dom[1, 0] + c * dom[2, 0] + ee * dom[3, 0]
+            x1 = a * dom[0, 1] + b * dom[1, 1] + c * dom[2, 1] + ee * dom[3, 1]
+            x2 = a * dom[0, 2] + b * dom[1, 2] + c * dom[2, 2] + ee * dom[3, 2]
+            du0 = (1 - vv) * (dom[1, 0] - dom[0, 0]) + vv * (dom[2, 0] - dom[3, 0])
+            du1 = (1 - vv) * (dom[1, 1] - dom[0, 1]) + vv * (dom[2, 1] - dom[3, 1])
+            du2 = (1 - vv) * (dom[1, 2] - dom[0, 2]) + vv * (dom[2, 2] - dom[3, 2])
+            dv0 = (1 - uu) * (dom[3, 0] - dom[0, 0]) + uu * (dom[2, 0] - dom[1, 0])
+            dv1 = (1 - uu) * (dom[3, 1] - dom[0, 1]) + uu * (dom[2, 1] - dom[1, 1])
+            dv2 = (1 - uu) * (dom[3, 2] - dom[0, 2]) + uu * (dom[2, 2] - dom[1, 2])
+            j0 = du1 * dv2 - du2 * dv1
+            j1 = du2 * dv0 - du0 * dv2
+            j2 = du0 * dv1 - du1 * dv0
+            jac = math.sqrt(j0 * j0 + j1 * j1 + j2 * j2)
+            wq = w[q] * gout[p]
+            if vrow[p] >= 0:
+                wq *= vis[vrow[p], q]
+            f = _contour(x0, x1, x2, n0, n1, n2, poly, cnt)
+            # ∂/∂|J|: w f → ∇_du |J| = dv × m, ∇_dv |J| = m × du (m = J/|J|)
+            if jac > 0:
+                m0 = j0 / jac
+                m1 = j1 / jac
+                m2 = j2 / jac
+                cj = wq * f
+                gu0 = cj * (dv1 * m2 - dv2 * m1)
+                gu1 = cj * (dv2 * m0 - dv0 * m2)
+                gu2 = cj * (dv0 * m1 - dv1 * m0)
+                gv0 = cj * (m1 * du2 - m2 * du1)
+                gv1 = cj * (m2 * du0 - m0 * du2)
+                gv2 = cj * (m0 * du1 - m1 * du0)
+                for k, (cu, cv) in enumerate(((-(1 - vv), -(1 - uu)), ((1 - vv), -uu), (vv, uu), (-vv, (1 - uu)))):
+                    gd[k, 0] += cu * gu0 + cv * gv0
+                    gd[k, 1] += cu * gu1 + cv * gv1
+                    gd[k, 2] += cu * gu2 + cv * gv2
+            # ∂/∂f: w |J|; f = −(1/2π) Σ_k γ_k (c_k·n)/|c_k| with a = v_k − x, b = v_{k+1} − x
+            coef = -_INV_2PI * wq * jac
+            gx0 = 0.0
+            gx1 = 0.0
+            gx2 = 0.0
+            for k in range(cnt):
+                k1 = k + 1 if k + 1 < cnt else 0
+                _edge_grad(poly[k, 0] - x0, poly[k, 1] - x1, poly[k, 2] - x2, poly[k1, 0] - x0, poly[k1, 1] - x1,
+                           poly[k1, 2] - x2, n0, n1, n2, coef, e)
+                gt[k, 0] += e[0]
+                gt[k, 1] += e[1]
+                gt[k, 2] += e[2]
+                gt[k1, 0] += e[3]
+                gt[k1, 1] += e[4]
+                gt[k1, 2] += e[5]
+                gx0 -= e[0] + e[3]
+                gx1 -= e[1] + e[4]
+                gx2 -= e[2] + e[5]
+                gn[0] += e[6]
+                gn[1] += e[7]
+                gn[2] += e[8]
+            for k, wk in enumerate((a, b, c, ee)):
+                gd[k, 0] += wk * gx0
+                gd[k, 1] += wk * gx1
+                gd[k, 2] += wk * gx2
+        for k in range(4):
+            for i in range(3):
+                gdom[p, k, i] = gd[k, i]
+        for i in range(3):
+            gnorm[p, i] = gn[i]
+        for k in range(poly.shape[0]):
+            for i in range(3):
+                gtgt[p, k, i] = gt[k, i]

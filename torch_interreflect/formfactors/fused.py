@@ -4,11 +4,16 @@ one compiled loop over pairs, on every core.
 :func:`group_sums` and :func:`fan_sums` give the same numbers as the torch quadrature of
 :func:`~torch_interreflect.formfactors.pair_values` (float64, to rounding), without its ~25 temporaries per
 point: on CPU through numba (``@njit(parallel=True)``, threads = ``torch.get_num_threads()``), elsewhere (a CUDA
-device) or when an input requires grad through the same maths in torch, which keeps autograd.
+device) through the same maths in torch.
+
+Gradients to the geometry: when an input requires grad (CPU), the domains, clipped targets and normals are gathered
+in torch (a graph of O(pairs) size) and the sums run through a compiled loop with a compiled, hand-written adjoint
+(derivatives of Lambert's edge terms, the bilinear map and its Jacobian); nothing per quadrature point is kept.
+It agrees with autograd through the torch path to rounding (``tests/formfactors/test_geometry_grad.py``).
 
 ``backend`` (of :func:`~torch_interreflect.form_factors` and of the functions here) selects the path:
-``"fused"`` (the compiled loop where it applies, torch otherwise), ``"torch"`` (always torch: the reference and
-the autograd path), ``"auto"`` (fused unless the scene's vertices require grad; the default).
+``"fused"`` / ``"auto"`` (the compiled loop, and its adjoint under autograd, where they apply; torch otherwise;
+``"auto"`` is the default), ``"torch"`` (always torch: the reference).
 """
 
 from __future__ import annotations
@@ -121,6 +126,42 @@ def _visible_rows(
     return vis(x, dom[rows], tgt[rows]).to(torch.float64).contiguous(), vrow
 
 
+class _PolygonSums(torch.autograd.Function):
+    """The compiled :func:`polygon_sums` loop with its compiled adjoint (gradients to the domain quads, normals and
+    target polygons; visible fractions are constants). Memory O(pairs): nothing per quadrature point is kept."""
+
+    @staticmethod
+    def forward(ctx, domain, normal, target, count, u, v, w, vis, vrow):  # type: ignore[override]
+        out = torch.empty(domain.shape[0], dtype=torch.float64)
+        args = [_np(t.double()) if t.is_floating_point() else _np(t) for t in (domain, normal, target, count, u, v, w,
+                                                                              vis, vrow)]
+        if domain.shape[0]:
+            _run(_kernels().polygon_sums, *args, out.numpy())
+        ctx.save_for_backward(domain, normal, target, count, u, v, w, vis, vrow)
+        return out.to(domain.dtype)
+
+    @staticmethod
+    def backward(ctx, gout):  # type: ignore[override]
+        domain, normal, target, count, u, v, w, vis, vrow = ctx.saved_tensors
+        P = domain.shape[0]
+        gd = torch.zeros(P, 4, 3, dtype=torch.float64)
+        gn = torch.zeros(P, 3, dtype=torch.float64)
+        gt = torch.zeros(target.shape, dtype=torch.float64)
+        if P:
+            args = [_np(t.double()) if t.is_floating_point() else _np(t) for t in (domain, normal, target, count, u, v,
+                                                                                  w, vis, vrow)]
+            _run(_kernels().polygon_sums_grad, *args, _np(gout.double()), gd.numpy(), gn.numpy(), gt.numpy())
+        return gd.to(domain.dtype), gn.to(normal.dtype), gt.to(target.dtype), None, None, None, None, None, None
+
+
+def _adjoint_wanted(backend: Backend, *tensors: Tensor) -> bool:
+    """Whether to run the compiled loop with its adjoint: autograd needs the inputs, numba is there, CPU."""
+    if backend == "torch" or _kernels() is None:
+        return False
+    return torch.is_grad_enabled() and any(t.requires_grad for t in tensors) and all(
+        t.device.type == "cpu" for t in tensors)
+
+
 def group_sums(
     corners: Tensor,
     normals: Tensor,
@@ -158,6 +199,8 @@ def group_sums(
         ``Σ_q F(x_q → target) |J_q| w_q vis_q`` in m². Shape ``[P]``.
     """
     u, v, w = rule
+    if _adjoint_wanted(backend, corners, normals, cent):
+        return _adjoint_group_sums(corners, normals, cent, dom, tgt, shift, clip, rule, eps, need, vis)
     if not resolve_backend(backend, corners, normals, cent):
         return _torch_group_sums(corners, normals, cent, dom, tgt, shift, clip, rule, eps, need, vis, chunk_points)
     k = _kernels()
@@ -172,6 +215,25 @@ def group_sums(
         _run(k.pair_sums, c, n, m, _np(d), _np(t), _np(sh), _np(clip[s : s + per]), un, vn, wn, float(eps),
              _np(fr), _np(vrow), out[s : s + per].numpy())
     return out
+
+
+def _adjoint_group_sums(corners, normals, cent, dom, tgt, shift, clip, rule, eps, need, vis) -> Tensor:
+    """:func:`group_sums` for inputs that require grad: domain quads, clipped targets and normals gathered in torch
+    (O(pairs) graph), the sums and their adjoint compiled (:class:`_PolygonSums`)."""
+    u, v, w = rule
+    out = []
+    per = max(64, _CHUNK_POINTS // u.numel())
+    for s in range(0, dom.numel(), per):
+        d, t, sh = dom[s : s + per], tgt[s : s + per], shift[s : s + per]
+        target = corners[t]
+        if bool(clip[s : s + per].any()):
+            target = clip_polygons(target, cent[d], normals[d], eps)[:, :5]
+        quads = _domains(corners, d, sh)
+        nd = need[s : s + per] if need is not None else None
+        fr, vrow = _visible_rows(nd, vis, lambda r: quads[r].detach(), u, v, d, t)  # noqa: B023
+        count = torch.full((d.numel(),), target.shape[1], dtype=torch.int64)
+        out.append(_PolygonSums.apply(quads, normals[d], target, count, u, v, w, fr, vrow))
+    return torch.cat(out) if out else torch.zeros(0, dtype=corners.dtype, device=corners.device)
 
 
 def _torch_group_sums(corners, normals, cent, dom, tgt, shift, clip, rule, eps, need, vis, chunk_points) -> Tensor:
@@ -222,11 +284,17 @@ def fan_sums(
     Returns:
         ``Σ_k Σ_q F(x_q → target) |J_q| w_q vis_q`` in m². Shape ``[P]``.
     """
-    fused = resolve_backend(backend, poly, target, normal)
+    adjoint = _adjoint_wanted(backend, poly, target, normal)
+    fused = adjoint or resolve_backend(backend, poly, target, normal)
     total = torch.zeros(poly.shape[0], dtype=poly.dtype, device=poly.device)
     for k in range(1, 4):
         u, v, w = rules[0] if k == 1 else rules[1]
         tri = torch.stack([poly[:, 0], poly[:, k], poly[:, k + 1], poly[:, k + 1]], dim=1)
+        if adjoint:
+            fr, vrow = _visible_rows(need, vis, lambda r: tri[r].detach(), u, v, dom, tgt)  # noqa: B023
+            count = torch.full((poly.shape[0],), target.shape[1], dtype=torch.int64)
+            total = total + _PolygonSums.apply(tri, normal, target, count, u, v, w, fr, vrow)
+            continue
         if fused:
             kern = _kernels()
             fr, vrow = _visible_rows(need, vis, lambda r: tri[r], u, v, dom, tgt)  # noqa: B023
