@@ -12,6 +12,7 @@ __all__ = [
     "DeviceError",
     "GeometryError",
     "GeometryWarning",
+    "GradientWarning",
     "InsufficientMemoryError",
     "ShapeError",
     "SingularSystemError",
@@ -60,3 +61,8 @@ class InsufficientMemoryError(MemoryError):
 class GeometryWarning(UserWarning):
     """The geometry is valid but probably not what was meant (e.g. no facet pair can exchange light because the
     facets face away from each other: normals pointing out of a concave mesh)."""
+
+
+class GradientWarning(UserWarning):
+    """Autograd will return a gradient that leaves out a known term (e.g. an image's per-pixel kernel held fixed
+    while the geometry requires grad); the message names the term."""

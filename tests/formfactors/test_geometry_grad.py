@@ -273,27 +273,3 @@ def test_compiled_adjoint_equals_torch_autograd(build):
     assert float(grads["torch"]) != 0.0
     assert abs(float(grads["auto"] - grads["torch"])) <= 1e-12 * abs(float(grads["torch"]))
 
-
-# ------------------------------------------------------------------------------------------- the light's factor
-def test_gradcheck_sun_direction_and_groove_angle():
-    """``E0`` of a sun: cosines are smooth in the direction and the corners (shadows are detached: none here)."""
-    spd = torch.ones(1, dtype=F64)
-
-    def sun(angle, d):
-        return ti.lights.directional(ti.scenes.v_groove(angle, divisions=2), d, spd)
-
-    a = torch.tensor(60.0, dtype=F64, requires_grad=True)
-    d = torch.tensor([0.3, 0.1, -1.0], dtype=F64, requires_grad=True)
-    assert torch.autograd.gradcheck(sun, (a, d), eps=1e-6, atol=1e-8, rtol=1e-6)
-
-
-def test_gradcheck_sky_open_fraction_in_the_groove_angle():
-    """The sky's ``E0`` of an unoccluded groove is ``π (1 − Σ_j F_ij)``: its gradient is the form factors'."""
-    spd = torch.ones(1, dtype=F64)
-
-    def sky(angle):
-        scene = ti.scenes.v_groove(angle, divisions=2)
-        return ti.lights.sky(scene, ti.form_factors(scene), spd)
-
-    assert torch.autograd.gradcheck(sky, (torch.tensor(60.0, dtype=F64, requires_grad=True),), eps=1e-6, atol=1e-8,
-                                    rtol=1e-6)

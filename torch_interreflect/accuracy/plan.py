@@ -16,11 +16,13 @@ from torch import Tensor
 from ..camera.gather import render_view
 from ..camera.sensor import Camera
 from ..camera.view import View
-from ..errors import AccuracyWarning, ShapeError, ValueRangeError
+from ..errors import AccuracyWarning, GradientWarning, ShapeError, ValueRangeError
 from ..formfactors.operator import FormFactors
+from ..formfactors.quadrature import form_factors
+from ..geometry._polygon import bilinear, bilinear_coordinates
 from ..geometry.scene import Scene, area_average
 from ..solver.api import solve
-from .leaves import rms
+from .leaves import light_factor, rms
 from .refine import Problem, Refinement, refine
 from .report import AccuracyReport, RenderResult
 from .settings import Settings, budget_for, choose_settings, quadrature_tol_for
@@ -57,6 +59,33 @@ class Plan:
     report: AccuracyReport
     light: Any = "uniform"
 
+    def for_geometry(self, scene: Scene) -> Plan:
+        """The same refinement and settings on ``scene``: the user's facets at other positions (same count, kind and
+        order), e.g. a deformed groove in a fitting loop, or the planned scene itself with corners that require
+        grad.
+
+        Each leaf keeps its bilinear coordinates in its user facet, so the leaves follow the facets; the form
+        factors (not sparsified) and the light factor are computed again on the moved leaves, keeping the graph of
+        ``scene.corners`` (and of a light direction that requires grad). The report is the original plan's: its
+        estimate holds for small moves.
+
+        Raises:
+            ShapeError: ``scene`` has other facets than the plan's.
+        """
+        if scene.num_facets != self.scene.num_facets or not torch.equal(scene.is_triangle.cpu(),
+                                                                          self.scene.is_triangle.cpu()):
+            raise ShapeError(f"for_geometry needs the plan's {self.scene.num_facets} facets (same kinds, same order); "
+                             f"got {scene.num_facets}")
+        user = self.leaf_user.to(scene.device)
+        uv = bilinear_coordinates(self.scene.corners[user], self.leaves.corners)  # [n, 4, 2], fixed
+        parent = scene.corners[user]
+        corners = bilinear(parent, uv[..., 0], uv[..., 1])[0]  # [n, 4, 3], differentiable in scene.corners
+        leaves = Scene.from_parts(corners, self.leaves.is_triangle, self.leaves.material, self.leaves.material_names)
+        K = form_factors(leaves, quadrature_tol=self.report.quadrature_tol, progress=False)
+        g = light_factor(self.light, leaves, K, user, scene.num_facets)
+        return Plan(scene, leaves, self.leaf_user, K, g, self.grid, self.nodes, self.method, self.bounces,
+                    self.solver_tol, self.report, self.light)
+
     def apply(
         self,
         reflectance: Tensor,
@@ -80,6 +109,15 @@ class Plan:
         Returns:
             A :class:`RenderResult` on the user's facets; its report is the plan's.
 
+        Gradients:
+            To ``reflectance`` and ``illuminant``; and, when the plan's scene was built from corners that require
+            grad (or the light is a direction that requires grad), to those: the leaves follow their user facets
+            (:meth:`for_geometry`) and the form factors, light factor and areas carry the gradient of the moved
+            leaves while their values stay the plan's. What :func:`~torch_interreflect.form_factors` leaves out is
+            left out here (the derivative of ray-cast visibility), and with a ``view`` the image's per-pixel kernel
+            is held fixed (a :class:`~torch_interreflect.errors.GradientWarning` says so). Memory grows with the
+            leaves' pairs (the form factors are rebuilt densely).
+
         Shape:
             - reflectance: ``[..., F, L]`` or ``[..., F]``; illuminant: ``[..., L]``
             - output irradiance, radiance: ``[..., F, L]``; rgb: ``[..., F, C]``; image: ``[..., C, H, W]``
@@ -88,25 +126,48 @@ class Plan:
         S, r = spectra(self.grid, illuminant, reflectance, F)
         nodes, user = self.nodes, self.leaf_user
         refl_leaf = r[..., user, :][..., nodes]
-        g = self.light_factor
+        K, g, areas = self._geometry()
         e0 = g.to(refl_leaf.dtype)[:, None].expand(-1, refl_leaf.shape[-1])
         if self.method == "series":
-            h = solve(self.form_factors, refl_leaf, e0, bounces=self.bounces)
+            h = solve(K, refl_leaf, e0, bounces=self.bounces)
         else:
-            h = solve(self.form_factors, refl_leaf, e0, tol=self.solver_tol, method=self.method)
+            h = solve(K, refl_leaf, e0, tol=self.solver_tol, method=self.method)
         h_full = h @ interp_matrix(self.grid[nodes], self.grid).to(h.dtype) if nodes.numel() < L else h
         E_leaf = S[..., None, :] * h_full
-        E = area_average(E_leaf, user, self.leaves.areas, F)
+        E = area_average(E_leaf, user, areas, F)
         rgb = None
         if camera is not None:
             if camera.num_wavelengths != L:
                 raise ShapeError(f"the camera has {camera.num_wavelengths} wavelengths but the plan's grid {L}")
-            rgb = area_average(camera(r[..., user, :] * E_leaf / math.pi), user, self.leaves.areas, F)
+            rgb = area_average(camera(r[..., user, :] * E_leaf / math.pi), user, areas, F)
         image = None
         if view is not None:
+            if K.matrix.requires_grad:
+                warnings.warn("render: the image's gradient reaches the geometry through the solved leaves' light "
+                              "only; the per-pixel kernel (hit points, point form factors, shadows) is held fixed",
+                              GradientWarning, stacklevel=2)
             r_leaf = r[..., user, :].expand(*E_leaf.shape[:-2], -1, -1)
             image = render_view(self.leaves, r_leaf, E_leaf, S, camera, view, self._leaf_light(), shading=shading)
         return RenderResult(E, r * E / math.pi, rgb, self.report, image)
+
+    def _geometry(self) -> tuple[FormFactors, Tensor, Tensor]:
+        """Form factors, light factor and leaf areas to solve with: the plan's; when the user's corners (or a light
+        direction) require grad, the same values carrying the gradient of :meth:`for_geometry` (straight-through:
+        ``planned + (moved − moved.detach())``), so the output does not change, only its graph."""
+        light_grad = isinstance(self.light, Tensor) and self.light.requires_grad
+        if not (torch.is_grad_enabled() and (self.scene.corners.requires_grad or light_grad)):
+            return self.form_factors, self.light_factor, self.leaves.areas
+        moved = self.for_geometry(self.scene)
+        planned = self.form_factors.matrix
+        planned = planned.to_dense() if planned.layout != torch.strided else planned
+        m = moved.form_factors.matrix
+        m = m.to_dense() if m.layout != torch.strided else m
+        K = FormFactors(planned.detach().to(m.dtype) + (m - m.detach()), moved.leaves.areas,
+                        dict(self.form_factors.info))
+        g_moved, a_moved = moved.light_factor, moved.leaves.areas
+        g = self.light_factor.detach().to(g_moved.dtype) + (g_moved - g_moved.detach())
+        areas = self.leaves.areas.detach().to(a_moved.dtype) + (a_moved - a_moved.detach())
+        return K, g, areas
 
     def _leaf_light(self) -> Any:
         """The light on the leaves: per-user-facet tensors (a factor or a mask) follow each leaf's user facet."""

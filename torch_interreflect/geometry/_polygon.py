@@ -42,6 +42,30 @@ def bilinear(corners: Tensor, u: Tensor, v: Tensor) -> tuple[Tensor, Tensor]:
     return x, jac
 
 
+def bilinear_coordinates(quads: Tensor, points: Tensor, iterations: int = 12) -> Tensor:
+    """Unit-square coordinates ``(u, v)`` ``[P, K, 2]`` of points ``[P, K, 3]`` lying on the planar quads
+    ``[P, 4, 3]`` (triangles as quads with two equal corners): the inverse of :func:`bilinear`, by damped
+    Gauss–Newton from the affine guess (exact for parallelograms after one step). Not differentiated."""
+    c = quads.detach().to(torch.float64)
+    p = points.detach().to(torch.float64)
+    c0, c1, c2, c3 = (t[:, None, :] for t in c.unbind(1))
+    e1, e2 = c1 - c0, c3 - c0
+    a = torch.stack([e1.expand_as(p), torch.where((e2.norm(dim=-1, keepdim=True) > 0), e2, c2 - c0).expand_as(p)],
+                    -1)
+    uv = torch.linalg.lstsq(a, (p - c0)[..., None]).solution[..., 0].clamp(0.0, 1.0)
+    for _ in range(iterations):
+        u, v = uv[..., :1], uv[..., 1:]
+        x = (1 - u) * (1 - v) * c0 + u * (1 - v) * c1 + u * v * c2 + (1 - u) * v * c3
+        du = (1 - v) * (c1 - c0) + v * (c2 - c3)
+        dv = (1 - u) * (c3 - c0) + u * (c2 - c1)
+        jac = torch.stack([du, dv], -1)  # [P, K, 3, 2]
+        jtj = jac.transpose(-1, -2) @ jac
+        jtj = jtj + 1e-14 * jtj.diagonal(dim1=-2, dim2=-1).sum(-1)[..., None, None] * torch.eye(2, dtype=c.dtype)
+        step = torch.linalg.solve(jtj, (jac.transpose(-1, -2) @ (p - x)[..., None]))[..., 0]
+        uv = (uv + step).clamp(0.0, 1.0)
+    return uv.to(quads.dtype)
+
+
 def clip_polygons(poly: Tensor, point: Tensor, normal: Tensor, eps: float) -> Tensor:
     """Clip polygons ``[P, K, 3]`` to the half-space ``(y − point)·normal >= 0``.
 
