@@ -154,6 +154,48 @@ class _PolygonSums(torch.autograd.Function):
         return gd.to(domain.dtype), gn.to(normal.dtype), gt.to(target.dtype), None, None, None, None, None, None
 
 
+class _PairSums(torch.autograd.Function):
+    """The compiled :func:`pair_sums` loop for pairs whose target is not clipped, with its compiled adjoint to the
+    facets' corners and normals. Keeps only the pair indices (and visible fractions) for the backward; domains and
+    targets are gathered again there, a chunk at a time."""
+
+    @staticmethod
+    def forward(ctx, corners, normals, cent, dom, tgt, shift, u, v, w, vis, vrow):  # type: ignore[override]
+        out = torch.empty(dom.numel(), dtype=torch.float64)
+        if dom.numel():
+            clip = torch.zeros(dom.numel(), dtype=torch.bool)
+            _run(_kernels().pair_sums, _np(corners.double()), _np(normals.double()), _np(cent.double()), _np(dom),
+                 _np(tgt), _np(shift), _np(clip), _np(u), _np(v), _np(w), 0.0, _np(vis), _np(vrow), out.numpy())
+        ctx.save_for_backward(corners, normals, dom, tgt, shift, u, v, w, vis, vrow)
+        return out.to(corners.dtype)
+
+    @staticmethod
+    def backward(ctx, gout):  # type: ignore[override]
+        corners, normals, dom, tgt, shift, u, v, w, vis, vrow = ctx.saved_tensors
+        c = corners.detach().double()
+        n = normals.detach().double()
+        gc = torch.zeros(c.shape[0] * 4, 3, dtype=torch.float64)
+        gn = torch.zeros(n.shape, dtype=torch.float64)
+        step = 1 << 16
+        for s in range(0, dom.numel(), step):
+            d, t, sh = dom[s : s + step], tgt[s : s + step], shift[s : s + step]
+            quads, target = _domains(c, d, sh).contiguous(), c[t].contiguous()
+            P = d.numel()
+            gd = torch.empty(P, 4, 3, dtype=torch.float64)
+            gnp = torch.empty(P, 3, dtype=torch.float64)
+            gt = torch.empty(P, 4, 3, dtype=torch.float64)
+            count = torch.full((P,), 4, dtype=torch.int64)
+            _run(_kernels().polygon_sums_grad, quads.numpy(), _np(n[d]), target.numpy(), count.numpy(), _np(u),
+                 _np(v), _np(w), _np(vis), _np(vrow[s : s + step]), _np(gout[s : s + step].double()), gd.numpy(),
+                 gnp.numpy(), gt.numpy())
+            k = torch.arange(4)
+            gc.index_add_(0, (d[:, None] * 4 + (k[None, :] + sh[:, None]) % 4).reshape(-1), gd.reshape(-1, 3))
+            gc.index_add_(0, (t[:, None] * 4 + k[None, :]).reshape(-1), gt.reshape(-1, 3))
+            gn.index_add_(0, d, gnp)
+        return (gc.reshape(corners.shape).to(corners.dtype), gn.to(normals.dtype), None, None, None, None, None, None,
+                None, None, None)
+
+
 def _adjoint_wanted(backend: Backend, *tensors: Tensor) -> bool:
     """Whether to run the compiled loop with its adjoint: autograd needs the inputs, numba is there, CPU."""
     if backend == "torch" or _kernels() is None:
@@ -218,21 +260,29 @@ def group_sums(
 
 
 def _adjoint_group_sums(corners, normals, cent, dom, tgt, shift, clip, rule, eps, need, vis) -> Tensor:
-    """:func:`group_sums` for inputs that require grad: domain quads, clipped targets and normals gathered in torch
-    (O(pairs) graph), the sums and their adjoint compiled (:class:`_PolygonSums`)."""
+    """:func:`group_sums` for inputs that require grad, with compiled sums and adjoints: whole targets through
+    :class:`_PairSums` (only the pair indices are kept), clipped targets (pairs straddling the domain's plane)
+    through :class:`_PolygonSums` with the clipping differentiated in torch."""
     u, v, w = rule
     out = []
     per = max(64, _CHUNK_POINTS // u.numel())
     for s in range(0, dom.numel(), per):
         d, t, sh = dom[s : s + per], tgt[s : s + per], shift[s : s + per]
-        target = corners[t]
-        if bool(clip[s : s + per].any()):
-            target = clip_polygons(target, cent[d], normals[d], eps)[:, :5]
-        quads = _domains(corners, d, sh)
         nd = need[s : s + per] if need is not None else None
-        fr, vrow = _visible_rows(nd, vis, lambda r: quads[r].detach(), u, v, d, t)  # noqa: B023
-        count = torch.full((d.numel(),), target.shape[1], dtype=torch.int64)
-        out.append(_PolygonSums.apply(quads, normals[d], target, count, u, v, w, fr, vrow))
+        cut = clip[s : s + per]
+        fr, vrow = _visible_rows(nd, vis, lambda r: _domains(corners.detach(), d[r], sh[r]), u, v, d, t)  # noqa: B023
+        keep = torch.nonzero(~cut).reshape(-1)  # whole targets: indices only are kept for the backward
+        part = _PairSums.apply(corners, normals, cent, d[keep], t[keep], sh[keep], u, v, w, fr, vrow[keep])
+        chunk = torch.zeros(d.numel(), dtype=corners.dtype).index_put((keep,), part)
+        rows = torch.nonzero(cut).reshape(-1)  # clipped targets (straddling pairs): clipping differentiated in torch
+        if rows.numel():
+            dc, tc = d[rows], t[rows]
+            target = clip_polygons(corners[tc], cent[dc], normals[dc], eps)[:, :5]
+            count = torch.full((rows.numel(),), target.shape[1], dtype=torch.int64)
+            part = _PolygonSums.apply(_domains(corners, dc, sh[rows]), normals[dc], target, count, u, v, w, fr,
+                                      vrow[rows])
+            chunk = chunk.index_put((rows,), part)
+        out.append(chunk)
     return torch.cat(out) if out else torch.zeros(0, dtype=corners.dtype, device=corners.device)
 
 
