@@ -157,6 +157,8 @@ class Plan:
         light_grad = isinstance(self.light, Tensor) and self.light.requires_grad
         if not (torch.is_grad_enabled() and (self.scene.corners.requires_grad or light_grad)):
             return self.form_factors, self.light_factor, self.leaves.areas
+        if self.form_factors.matrix.requires_grad:  # built by for_geometry: already carries the graph
+            return self.form_factors, self.light_factor, self.leaves.areas
         moved = self.for_geometry(self.scene)
         planned = self.form_factors.matrix
         planned = planned.to_dense() if planned.layout != torch.strided else planned
