@@ -24,7 +24,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from ..camera.gather import point_form_factors
+from ..camera.point_kernel import point_form_factors
 from ..formfactors.operator import FormFactors
 from ..geometry.raycast import RayCaster
 from ..geometry.scene import Scene

@@ -6,16 +6,19 @@
   :func:`render_image`.
 - :mod:`.view`: :class:`View` (eye, target, up, field of view, size), a hashable view.
 - :mod:`.gather`: :func:`gather_operator` → :class:`Gather`, :func:`gathered_image`, :func:`gathered_radiance`,
-  :func:`render_view` (per-pixel final gather, or flat shading), :func:`point_form_factors`.
+  :func:`render_view` (per-pixel final gather, or flat shading); :mod:`.fragments` (a view's sub-pixel rays
+  grouped per pixel and facet) and :mod:`.point_kernel` (:func:`point_form_factors`, point-to-facet form factors
+  with occlusion) under it.
 - :mod:`.io`: :func:`save_image` (8-bit sRGB preview or 16-bit linear PNG).
 - :mod:`.image`: :func:`to_srgb`, :func:`blur`, :func:`white_balance`, :func:`add_noise`, :func:`to_lab`,
   :func:`delta_e` (kornia).
 """
 
 from .facet_rgb import facet_rgb
-from .gather import Gather, gather_operator, gathered_image, gathered_radiance, point_form_factors, render_view
+from .gather import Gather, gather_operator, gathered_image, gathered_radiance, render_view
 from .image import add_noise, blur, delta_e, to_lab, to_srgb, white_balance
 from .io import save_image
+from .point_kernel import point_form_factors
 from .projection import Projection, look_at, project, render_image
 from .sensor import Camera, spectral_to_rgb
 from .view import View
