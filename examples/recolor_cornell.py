@@ -3,8 +3,9 @@
 The box is lit by its ceiling light (an area light: the light facet emits D65 radiance), surfaces are ColorChecker
 spectra, the camera is the Nikon 5100. The red wall's reflectance is replaced by ColorChecker blue and the scene is
 solved again with infinitely many bounces; the floor, the blocks and the back wall lose their reddish tint and gain
-a bluish one. Writes before.png, after.png and bleeding.png (the change on every surface except the wall itself,
-amplified) and prints the mean chromaticity of each surface before and after.
+a bluish one. The images are shaded per pixel by a final gather from the solved facets (soft shadows, light
+varying inside each facet). Writes before.png, after.png and bleeding.png (the change on every surface except the
+wall itself, amplified) and prints the mean chromaticity of each surface before and after.
 
     python examples/recolor_cornell.py --out out/examples/recolor_cornell
 """
@@ -19,7 +20,7 @@ from pathlib import Path
 import torch
 
 import torch_interreflect as ti
-from torch_interreflect.camera import project, to_srgb, white_balance
+from torch_interreflect.camera import View, gather_operator, gathered_image, to_srgb, white_balance
 from torch_interreflect.inverse import recolor
 from torch_interreflect.layers import Interreflection
 
@@ -58,16 +59,19 @@ def main(argv: list[str] | None = None) -> dict[str, float]:
     scene = ti.scenes.cornell_box(args.divisions, dtype=torch.float64)
     ff = ti.form_factors(scene)
     t_ff = time.perf_counter() - t0
-    proj = project(scene, ([0.278, 0.273, -0.80], [0.278, 0.273, 0.28]), args.size, args.size, fov_deg=39.0,
-                   supersample=args.supersample)
-    layer = Interreflection((scene, ff), wl, light="light", projection=proj)
+    view = View((0.278, 0.273, -0.80), (0.278, 0.273, 0.28), up=(0.0, 1.0, 0.0), fov_deg=39.0, height=args.size,
+                width=args.size)
+    t1 = time.perf_counter()
+    op = gather_operator(scene, view, "light", supersample=args.supersample)  # rays, point kernel: once per view
+    t_op = time.perf_counter() - t1
+    layer = Interreflection((scene, ff), wl, light="light")
     names = scene.material_names
     r_mat = torch.stack([ti.spectral.reflectance(MATERIALS[n], wl) for n in names])
     r = r_mat[scene.material]
     d65 = ti.spectral.illuminant("D65", wl)
 
     out = recolor(layer, r, "red_wall", ti.spectral.reflectance("blue", wl), d65)
-    rgb_before = layer(r, d65)[0]
+    rgb_before = layer(r, d65)
     rgb_after = out.rgb
 
     # display: add the light's own emission, white-balance for D65, expose on the brightest lit surface
@@ -75,17 +79,20 @@ def main(argv: list[str] | None = None) -> dict[str, float]:
     is_light = layer.facets_of("light")
     white = layer.camera(d65[None] / math.pi)[0]
 
-    def show(rgb: torch.Tensor) -> torch.Tensor:
-        rgb = rgb + is_light[:, None] * emit
-        return white_balance(proj(rgb), white)
+    def per_facet(values: torch.Tensor) -> torch.Tensor:  # [F, C] → [1, C, H, W] through the pixel coverage
+        return (op.coverage @ values).T.reshape(1, -1, args.size, args.size)
 
-    ref = white_balance(proj(rgb_before.masked_fill(is_light[:, None], 0)), white)
-    exposure = 1.0 / float(torch.quantile(ref.flatten(), 0.99))
-    _save(args.out / "before.png", to_srgb(show(rgb_before), exposure=exposure))
-    _save(args.out / "after.png", to_srgb(show(rgb_after), exposure=exposure))
-    wall = layer.facets_of("red_wall")
-    change = (rgb_after - rgb_before).masked_fill(wall[:, None], 0).abs()
-    diff = white_balance(proj(change), white)
+    def picture(refl: torch.Tensor) -> torch.Tensor:  # gathered, plus the light's own emission
+        E = ti.solve(ff, refl, layer.direct(d65))
+        return gathered_image(op, refl, E, d65, layer.camera)[None] + per_facet(is_light[:, None] * emit)
+
+    before, after = picture(r), picture(out.reflectance)
+    lit = per_facet(is_light[:, None].double())[:, :1] == 0
+    exposure = 1.0 / float(torch.quantile(white_balance(before, white)[lit.expand_as(before)], 0.99))
+    _save(args.out / "before.png", to_srgb(white_balance(before, white), exposure=exposure))
+    _save(args.out / "after.png", to_srgb(white_balance(after, white), exposure=exposure))
+    wall = per_facet(layer.facets_of("red_wall")[:, None].double())[:, :1] > 0
+    diff = white_balance((after - before).abs().masked_fill(wall, 0), white)
     _save(args.out / "bleeding.png", to_srgb(diff / float(diff.max())))
 
     def chroma(rgb: torch.Tensor, name: str) -> torch.Tensor:
@@ -95,7 +102,8 @@ def main(argv: list[str] | None = None) -> dict[str, float]:
         return mean / mean.sum()
 
     results: dict[str, float] = {}
-    print(f"Cornell box: {scene.num_facets} facets, form factors {t_ff:.2f} s; image {args.size}² px")
+    print(f"Cornell box: {scene.num_facets} facets, form factors {t_ff:.2f} s; image {args.size}² px, gather "
+          f"operator {t_op:.2f} s")
     print("mean white-balanced chromaticity (r, g, b) per surface, before → after recolouring the red wall blue")
     print(f"{'surface':<12} {'before':>24} {'after':>24}  Δr       Δb")
     for name in ("floor", "ceiling", "back_wall", "short_block", "tall_block", "green_wall"):
