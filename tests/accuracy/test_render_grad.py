@@ -76,3 +76,7 @@ def test_for_geometry_checks_the_facets_and_the_image_warns():
     view = ti.View((0.03, 0.03, 0.1), (0.03, 0.03, 0.0), (0, 1, 0), height=4, width=4)
     with pytest.warns(GradientWarning, match="per-pixel kernel"):
         p.apply(r, view=view)
+    d = torch.tensor(SUN, dtype=F64, requires_grad=True)
+    p_sun, r = _plan(torch.tensor(50.0, dtype=F64), d)
+    with pytest.warns(GradientWarning, match="light's direction"):
+        p_sun.apply(r, view=view)

@@ -293,3 +293,15 @@ def test_layer_view_errors():
     layer = Interreflection(scene, wl, view=view)
     with pytest.raises(ValueError, match="needs illuminant="):
         layer(torch.full((8, 31), 0.5), E0=torch.ones(8, 31))
+
+
+def test_layer_view_with_geometry_gradients_warns():
+    from torch_interreflect.camera import View
+    from torch_interreflect.errors import GradientWarning
+
+    wl = ti.spectral.wavelengths(dtype=torch.float64)
+    angle = torch.tensor(60.0, dtype=torch.float64, requires_grad=True)
+    view = View((0.03, 0.03, 0.1), (0.03, 0.03, 0.0), (0, 1, 0), height=4, width=4)
+    layer = Interreflection(ti.scenes.v_groove(angle, divisions=2), wl, view=view)
+    with pytest.warns(GradientWarning, match="per-pixel kernel is held fixed"):
+        layer(torch.full((8, 31), 0.5, dtype=torch.float64), ti.spectral.illuminant("D65", wl))

@@ -272,6 +272,10 @@ def test_configs_of_earlier_versions_read_back_as_flat_unsplit(tmp_path: Path) -
     assert (cfg.shading, cfg.split_contacts) == ("flat", False)
     assert not cfg.same_samples(CFG)
     assert g.GeneratorConfig.from_json(CFG.to_json()) == CFG
+    # the gather's settings do not change flat samples: a flat folder grows whatever they say
+    flat = g.GeneratorConfig(**{**CFG.__dict__, "shading": "flat"})
+    assert flat.same_samples(g.GeneratorConfig(**{**flat.__dict__, "visibility_samples": 3, "gather_stride": 2}))
+    assert not CFG.same_samples(g.GeneratorConfig(**{**CFG.__dict__, "visibility_samples": 3}))
 
 
 def test_split_contacts_splits_the_floor_under_the_blocks() -> None:

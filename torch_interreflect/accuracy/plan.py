@@ -115,7 +115,8 @@ class Plan:
             (:meth:`for_geometry`) and the form factors, light factor and areas carry the gradient of the moved
             leaves while their values stay the plan's. What :func:`~torch_interreflect.form_factors` leaves out is
             left out here (the derivative of ray-cast visibility), and with a ``view`` the image's per-pixel kernel
-            is held fixed (a :class:`~torch_interreflect.errors.GradientWarning` says so). Memory grows with the
+            (including the sun's per-pixel cosines) is held fixed (a :class:`~torch_interreflect.errors.GradientWarning`
+            says so). Memory grows with the
             leaves' pairs (the form factors are rebuilt densely).
 
         Shape:
@@ -142,10 +143,10 @@ class Plan:
             rgb = area_average(camera(r[..., user, :] * E_leaf / math.pi), user, areas, F)
         image = None
         if view is not None:
-            if K.matrix.requires_grad:
-                warnings.warn("render: the image's gradient reaches the geometry through the solved leaves' light "
-                              "only; the per-pixel kernel (hit points, point form factors, shadows) is held fixed",
-                              GradientWarning, stacklevel=2)
+            if K.matrix.requires_grad or g.requires_grad:
+                warnings.warn("render: the image's gradient reaches the geometry and the light's direction through "
+                              "the solved leaves' light only; the per-pixel kernel (hit points, point form factors, "
+                              "the sun's cosines and shadows per pixel) is held fixed", GradientWarning, stacklevel=2)
             r_leaf = r[..., user, :].expand(*E_leaf.shape[:-2], -1, -1)
             image = render_view(self.leaves, r_leaf, E_leaf, S, camera, view, self._leaf_light(), shading=shading)
         return RenderResult(E, r * E / math.pi, rgb, self.report, image)
@@ -159,6 +160,11 @@ class Plan:
             return self.form_factors, self.light_factor, self.leaves.areas
         if self.form_factors.matrix.requires_grad:  # built by for_geometry: already carries the graph
             return self.form_factors, self.light_factor, self.leaves.areas
+        if not self.scene.corners.requires_grad:  # only the light: its factor on the planned leaves
+            g_moved = light_factor(self.light, self.leaves, self.form_factors, self.leaf_user.to(self.scene.device),
+                                   self.scene.num_facets)
+            g = self.light_factor.detach().to(g_moved.dtype) + (g_moved - g_moved.detach())
+            return self.form_factors, g, self.leaves.areas
         moved = self.for_geometry(self.scene)
         planned = self.form_factors.matrix
         planned = planned.to_dense() if planned.layout != torch.strided else planned

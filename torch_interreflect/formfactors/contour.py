@@ -45,10 +45,12 @@ def point_polygon_factor(x: Tensor, normal: Tensor, polygon: Tensor) -> Tensor:
     cx = ry * sz - rz * sy
     cy = rz * sx - rx * sz
     cz = rx * sy - ry * sx
-    cn = torch.sqrt(cx * cx + cy * cy + cz * cz)
-    gamma = torch.atan2(cn, rx * sx + ry * sy + rz * sz)
+    tiny = torch.finfo(x.dtype).tiny ** 0.5
+    cn2 = cx * cx + cy * cy + cz * cz
+    ok = cn2 > tiny * tiny  # a zero-length edge (a padded or triangle corner) adds nothing, and no NaN gradient:
+    cn = torch.sqrt(torch.where(ok, cn2, torch.ones_like(cn2)))  # sqrt(0) and atan2(0, 0) are kept out of autograd
+    gamma = torch.atan2(cn, torch.where(ok, rx * sx + ry * sy + rz * sz, torch.ones_like(cn2)))
     n = normal.T[:, :, None, None]
     proj = cx * n[0] + cy * n[1] + cz * n[2]
-    tiny = torch.finfo(x.dtype).tiny ** 0.5
-    term = torch.where(cn > tiny, gamma * proj / cn.clamp_min(tiny), torch.zeros_like(cn))
+    term = torch.where(ok, gamma * proj / cn, torch.zeros_like(cn))
     return -_INV_2PI * term.sum(-1)

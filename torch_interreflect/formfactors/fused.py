@@ -8,8 +8,10 @@ device) through the same maths in torch.
 
 Gradients to the geometry: when an input requires grad (CPU), the domains, clipped targets and normals are gathered
 in torch (a graph of O(pairs) size) and the sums run through a compiled loop with a compiled, hand-written adjoint
-(derivatives of Lambert's edge terms, the bilinear map and its Jacobian); nothing per quadrature point is kept.
-It agrees with autograd through the torch path to rounding (``tests/formfactors/test_geometry_grad.py``).
+(derivatives of Lambert's edge terms, the bilinear map and its Jacobian); of the quadrature points only the visible
+fractions of occluded pairs are kept. It agrees with autograd through the torch path to rounding
+(``tests/formfactors/test_geometry_grad.py``). First derivatives only (``create_graph=True`` raises: use
+``backend="torch"`` for higher orders).
 
 ``backend`` (of :func:`~torch_interreflect.form_factors` and of the functions here) selects the path:
 ``"fused"`` / ``"auto"`` (the compiled loop, and its adjoint under autograd, where they apply; torch otherwise;
@@ -126,9 +128,18 @@ def _visible_rows(
     return vis(x, dom[rows], tgt[rows]).to(torch.float64).contiguous(), vrow
 
 
+def _first_order_only() -> None:
+    """The compiled adjoints give first derivatives only: a backward that builds a graph (``create_graph=True``,
+    for second derivatives or gradient penalties) would silently treat them as constants."""
+    if torch.is_grad_enabled():
+        raise RuntimeError("the compiled adjoint of the form factors gives first derivatives only (create_graph=True "
+                           "needs a graph of the gradient): use form_factors(..., backend='torch') for higher orders")
+
+
 class _PolygonSums(torch.autograd.Function):
     """The compiled :func:`polygon_sums` loop with its compiled adjoint (gradients to the domain quads, normals and
-    target polygons; visible fractions are constants). Memory O(pairs): nothing per quadrature point is kept."""
+    target polygons; visible fractions are constants). Memory O(pairs): of the quadrature points only the visible
+    fractions of occluded pairs are kept. First derivatives only."""
 
     @staticmethod
     def forward(ctx, domain, normal, target, count, u, v, w, vis, vrow):  # type: ignore[override]
@@ -142,6 +153,7 @@ class _PolygonSums(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, gout):  # type: ignore[override]
+        _first_order_only()
         domain, normal, target, count, u, v, w, vis, vrow = ctx.saved_tensors
         P = domain.shape[0]
         gd = torch.zeros(P, 4, 3, dtype=torch.float64)
@@ -171,6 +183,7 @@ class _PairSums(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, gout):  # type: ignore[override]
+        _first_order_only()
         corners, normals, dom, tgt, shift, u, v, w, vis, vrow = ctx.saved_tensors
         c = corners.detach().double()
         n = normals.detach().double()
@@ -198,6 +211,8 @@ class _PairSums(torch.autograd.Function):
 
 def _adjoint_wanted(backend: Backend, *tensors: Tensor) -> bool:
     """Whether to run the compiled loop with its adjoint: autograd needs the inputs, numba is there, CPU."""
+    if backend not in ("auto", "fused", "torch"):
+        raise ValueError(f"backend must be 'auto', 'fused' or 'torch'; got {backend!r}")
     if backend == "torch" or _kernels() is None:
         return False
     return torch.is_grad_enabled() and any(t.requires_grad for t in tensors) and all(

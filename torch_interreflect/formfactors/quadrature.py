@@ -132,7 +132,8 @@ def form_factors(
         (they are chosen from the geometry but are piecewise constant in it). Measured against central finite
         differences in float64: ``d mean(E) / d angle`` of a V-groove to 8e-11 relative, Howell's C-14 derivative
         to 6e-8 (``tests/formfactors/test_geometry_grad.py``). The compiled adjoint (default) and torch autograd
-        (``backend="torch"``) agree to 4e-16 relative; the adjoint keeps O(pairs) memory. Not included: the
+        (``backend="torch"``) agree to rounding (2e-15 relative); the adjoint keeps O(pairs) memory and gives first
+        derivatives only. Not included: the
         derivative of ray-cast visibility (occluded pairs carry the interior term only, see
         :mod:`~torch_interreflect.formfactors.visibility`), and ``method="monte_carlo"`` (no gradient). ``areas``
         of the result are detached.

@@ -25,7 +25,7 @@ from ..camera.facet_rgb import facet_rgb
 from ..camera.gather import Gather, gather_operator, gathered_image
 from ..camera.sensor import Camera
 from ..camera.view import View
-from ..errors import ShapeError
+from ..errors import GradientWarning, ShapeError
 from ..formfactors.operator import FormFactors
 from ..formfactors.quadrature import form_factors as _compute_form_factors
 from ..geometry.scene import Scene, area_average
@@ -288,6 +288,10 @@ class Interreflection(nn.Module):
         if self.shading == "gather" and b is not None:  # the gather adds the last bounce: it gathers E of b - 1
             E = solve(self.form_factors, r, e0, bounces=b - 1, tol=self.tol, method=self.method) if b > 1 else (
                 torch.zeros_like(E))
+        if self.matrix.requires_grad or self.light_factor.requires_grad:
+            warnings.warn("Interreflection(view=): the image's gradient reaches the geometry (and a light direction) "
+                          "through the solved facets' light only; the per-pixel kernel is held fixed",
+                          GradientWarning, stacklevel=3)
         image = gathered_image(self.gather_view, r, E, illuminant, self.camera, shading=self.shading)
         return rgb, image
 

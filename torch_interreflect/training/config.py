@@ -118,7 +118,16 @@ class GeneratorConfig:
 
     def same_samples(self, other: GeneratorConfig) -> bool:
         """Whether ``other`` makes the same sample ``i`` as this config for every ``i`` (all fields but ``count``)."""
-        return dataclasses.replace(self, count=0) == dataclasses.replace(other, count=0)
+        return self._identity() == other._identity()
+
+    def _identity(self) -> GeneratorConfig:
+        """The fields that decide a sample's bytes (``count`` never; the gather's settings only when gathering)."""
+        d = dataclasses.replace(self, count=0)
+        if d.shading == "flat":
+            default = GeneratorConfig()
+            d = dataclasses.replace(d, visibility_samples=default.visibility_samples,
+                                    gather_stride=default.gather_stride)
+        return d
 
     def to_json(self) -> dict[str, Any]:
         """The config as JSON-able data (``bounces``: ``"inf"`` for ``None``)."""
