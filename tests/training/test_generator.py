@@ -283,3 +283,23 @@ def test_split_contacts_splits_the_floor_under_the_blocks() -> None:
     split = g.render_sample(cfg, 0).metadata["num_facets"]
     whole = g.render_sample(g.GeneratorConfig(**{**cfg.__dict__, "split_contacts": False}), 0).metadata["num_facets"]
     assert split > whole
+
+
+def test_gathered_samples_carry_their_per_pixel_model_and_refine_uses_it():
+    """A gathered sample's geometry stores the facets, view and light mix; refine_illuminant rebuilds the gather
+    from them, so at the true illuminant its re-render explains the image to 0.12 % (measured) where the flat
+    model leaves 12 % (a concave mesh, only parts of its facets seen)."""
+    from torch_interreflect.training import refine_illuminant
+
+    cfg = g.GeneratorConfig(size=(32, 32))
+    s = g.render_sample(cfg, 0)
+    assert s.metadata["scene"]["kind"] == "mesh"
+    geo = g.load_geometry(s.geometry)
+    assert "shading" in geo and "shading" not in g.load_geometry(
+        g.render_sample(g.GeneratorConfig(size=(8, 8), shading="flat"), 0).geometry)
+    image = torch.from_numpy(s.images[None]).permute(2, 0, 1).double()
+    truth = torch.tensor(s.metadata["illuminant"]["rgb_normalized"], dtype=torch.float64)
+    est = {"camera": cfg.camera, "wavelengths": cfg.wavelengths}
+    gathered = refine_illuminant(est, image, geo, truth, steps=3)
+    flat = refine_illuminant(est, image, {k: v for k, v in geo.items() if k != "shading"}, truth, steps=3)
+    assert gathered.start_residual < 3e-3 < 0.05 < flat.start_residual

@@ -9,7 +9,9 @@ these) and a starting estimate (a network's), :func:`refine_illuminant` finds th
 ``min  ‖s · P(S, R) − I‖² / ‖I‖²  +  λ ‖c − c₀‖² / K  +  μ ‖a‖² / (M K_r)``,
 
 ``P = coverage · camera(R E / π)``, ``(I − F R) E = g ⊗ S`` solved exactly (``bounces=None``), or with one
-(direct only) or two bounces as ablations; ``s`` is the best scale in closed form, ``c₀`` the code of the starting
+(direct only) or two bounces as ablations; for a gathered sample (its geometry carries ``"shading"``) ``P`` is the
+per-pixel final gather from the solved facets, rebuilt from the stored facets, view and light mix, as the image was;
+``s`` is the best scale in closed form, ``c₀`` the code of the starting
 estimate (a weak prior: the image alone cannot tell ``S · a`` from ``R / a`` where there is no interreflection,
 Funt & Drew's mutual-illumination argument; with interreflection the bounced light, ``∝ S R²``, can). L-BFGS on
 ``(c, a)``, differentiable through the solve's adjoint.
@@ -28,7 +30,10 @@ import torch.nn.functional as nnf
 from torch import Tensor
 
 from .. import spectral
+from ..camera.gather import gather_operator, gathered_image
 from ..camera.sensor import Camera
+from ..camera.view import View
+from ..geometry.scene import Scene
 from ..solver.api import radiance, solve
 
 __all__ = ["RefinedIlluminant", "code_for_rgb", "refine_illuminant"]
@@ -83,6 +88,22 @@ def code_for_rgb(rgb: Tensor, basis: tuple[Tensor, Tensor, Tensor], camera: Came
     return code.detach()
 
 
+def _gathered_model(geometry: dict[str, Any]) -> tuple[Any, Tensor] | None:
+    """For a gathered sample (``geometry["shading"]``), its per-pixel model: the gather operator rebuilt from the
+    facets and the view, and the direct term of its light mix ``[K]``; ``None`` for a flat one."""
+    sh = geometry.get("shading")
+    if sh is None:
+        return None
+    scene = Scene.from_parts(sh["corners"].to(torch.float64), sh["is_triangle"], geometry["material"].long(), None)
+    v = sh["view"]
+    view = View(v["eye"], v["target"], v["up"], fov_deg=v["fov_deg"], height=v["height"], width=v["width"])
+    op = gather_operator(scene, view, sh["sun"], supersample=sh["supersample"], samples=sh["samples"],
+                         stride=sh["stride"], cache=False)
+    ambient = op.open_sky if sh["sky"] else torch.ones_like(op.direct)
+    a = sh["ambient_weight"]
+    return op, a * ambient + (1.0 - a) * op.direct
+
+
 def _problem(image: Tensor, geometry: dict[str, Any]) -> tuple[Tensor, Tensor, Tensor]:
     """``(coverage [P, F], observed [P, 3], facet material [F])`` over the pixels that see a facet."""
     cov = geometry["coverage"]
@@ -135,6 +156,9 @@ def refine_illuminant(
     r_sigma = ((data - r_mean) @ r_comps.T).std(0)
     cov, obs, material = _problem(image, geometry)
     obs = obs / obs.norm().clamp_min(1e-300)
+    gathered = _gathered_model(geometry)  # the image's own per-pixel model when the sample was gathered
+    seen = geometry["coverage"]
+    seen = ((seen.to_dense() if seen.layout != torch.strided else seen).sum(1) > 1e-9)
     ff, g = geometry["form_factors"], geometry["light_factor"].to(torch.float64)
     n_mat = int(material.max()) + 1
     c0 = code_for_rgb(init_rgb, basis, cam)
@@ -143,6 +167,11 @@ def refine_illuminant(
         spd = spectral.illuminant_from_coefficients(code, *basis)
         refl = (r_mean + (a * r_sigma) @ r_comps).clamp(0.01, 0.95)  # [M, L]
         r_f = refl[material]
+        if gathered is not None:  # the n-bounce image gathers the (n - 1)-bounce facet light (as the generator)
+            E = torch.zeros_like(r_f) if bounces == 1 else solve(
+                ff, r_f, g[:, None] * spd[None, :], bounces=None if bounces is None else bounces - 1, tol=tol)
+            image_pred = gathered_image(gathered[0], r_f, E, spd, cam, direct=gathered[1])  # [3, H, W]
+            return image_pred.reshape(3, -1).T[seen].to(torch.float64), spd, refl
         E = solve(ff, r_f, g[:, None] * spd[None, :], bounces=bounces, tol=tol)
         rgb_f = cam(radiance(E, r_f).to(cam.sensitivities.dtype)).to(torch.float64)
         return cov @ rgb_f, spd, refl

@@ -209,10 +209,21 @@ def _metadata(config: GeneratorConfig, index: int, d: _Drawn, white: Tensor, exp
     }
 
 
-def _geometry(d: _Drawn, proj: Any) -> dict[str, np.ndarray]:
+def _geometry(config: GeneratorConfig, d: _Drawn, proj: Any) -> dict[str, np.ndarray]:
     dense = d.K.to_dense().double()
     nz = torch.nonzero(dense).T
     cov = proj.coverage.to_sparse_coo().coalesce()
+    extra = {}
+    if config.shading == "gather":  # what rebuilds the image's own model: the facets, the view and the light mix
+        v, light = d.view, d.params["light"]
+        extra = {
+            "corners": d.scene.corners.double().numpy(),
+            "is_triangle": d.scene.is_triangle.numpy(),
+            "view": np.array([*v["eye"], *v["target"], *v["up"], v["fov_deg"], *config.size], dtype=np.float64),
+            "gather": np.array([config.supersample, config.visibility_samples, config.gather_stride], dtype=np.int64),
+            "sun": np.array(light["sun_direction"], dtype=np.float64),
+            "ambient": np.array([light["ambient"] == "sky", light["ambient_weight"]], dtype=np.float64),
+        }
     return {
         "ff_indices": nz.numpy().astype(np.int32),
         "ff_values": dense[nz[0], nz[1]].numpy().astype(np.float32),
@@ -223,6 +234,7 @@ def _geometry(d: _Drawn, proj: Any) -> dict[str, np.ndarray]:
         "coverage_indices": cov.indices().numpy().astype(np.int32),
         "coverage_values": cov.values().double().numpy().astype(np.float32),
         "background": proj.background.double().numpy().astype(np.float32),
+        **extra,
     }
 
 
@@ -247,4 +259,4 @@ def render_sample(config: GeneratorConfig, index: int, *, device: torch.device |
     images, exposure, view_geometry = _render_variants(config, d, res["camera"], dev)
     white = res["camera"](d.spd[None, :] / math.pi)[0]  # camera RGB of a perfect white diffuser under the illuminant
     meta = _metadata(config, index, d, white, exposure, res["wl"])
-    return Sample(index, images, meta, _geometry(d, view_geometry) if config.geometry else {})
+    return Sample(index, images, meta, _geometry(config, d, view_geometry) if config.geometry else {})

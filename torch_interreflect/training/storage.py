@@ -216,7 +216,9 @@ def load_geometry(
 
     Returns:
         ``{"form_factors": FormFactors (dense [F, F]), "light_factor": [F], "material": [F] int64,
-        "reflectance": [M, L], "coverage": sparse CSR [H·W, F], "background": [H, W]}``.
+        "reflectance": [M, L], "coverage": sparse CSR [H·W, F], "background": [H, W]}``, and for a gathered sample
+        ``"shading"``: the facets' corners, the view, the gather's settings and the light mix (sun direction, sky or
+        uniform ambient and its weight) that rebuild the image's per-pixel model.
     """
     z = np.load(source) if isinstance(source, (str, Path)) else source
     areas = torch.from_numpy(np.asarray(z["areas"])).to(dtype)
@@ -230,7 +232,7 @@ def load_geometry(
         warnings.simplefilter("ignore", UserWarning)
         cov = torch.sparse_coo_tensor(ci, torch.from_numpy(np.asarray(z["coverage_values"])).to(dtype),
                                       (bg.numel(), n)).coalesce().to_sparse_csr()
-    return {
+    out: dict[str, Any] = {
         "form_factors": FormFactors(mat, areas),
         "light_factor": torch.from_numpy(np.asarray(z["light_factor"])).to(dtype),
         "material": torch.from_numpy(np.asarray(z["material"]).astype(np.int64)),
@@ -238,3 +240,15 @@ def load_geometry(
         "coverage": cov,
         "background": bg,
     }
+    if "corners" in z:  # a gathered sample: what rebuilds its per-pixel model (training.refine uses it)
+        view, gather, amb = np.asarray(z["view"]), np.asarray(z["gather"]), np.asarray(z["ambient"])
+        out["shading"] = {
+            "corners": torch.from_numpy(np.asarray(z["corners"])).to(dtype),
+            "is_triangle": torch.from_numpy(np.asarray(z["is_triangle"]).astype(bool)),
+            "view": {"eye": view[0:3].tolist(), "target": view[3:6].tolist(), "up": view[6:9].tolist(),
+                     "fov_deg": float(view[9]), "height": int(view[10]), "width": int(view[11])},
+            "supersample": int(gather[0]), "samples": int(gather[1]), "stride": int(gather[2]),
+            "sun": torch.from_numpy(np.asarray(z["sun"])).to(torch.float64),
+            "sky": bool(amb[0]), "ambient_weight": float(amb[1]),
+        }
+    return out
