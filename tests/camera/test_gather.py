@@ -217,3 +217,24 @@ def test_stride_interpolates_the_gather_within_facets() -> None:
     assert 1e-3 < float(rel.square().mean().sqrt()) < 6e-3
     with pytest.raises(ValueError, match="stride must be an integer >= 1"):
         gather_operator(scene, v, d, stride=0)
+
+
+def test_source_irradiance_and_mix_direct() -> None:
+    """The n-bounce image gathers the (n - 1)-bounce facet light; the generator's light mix needs a gathered
+    operator."""
+    from torch_interreflect.camera import mix_direct, source_irradiance
+
+    scene = ti.scenes.v_groove(60.0, divisions=2, dtype=torch.float64)
+    K = ti.form_factors(scene)
+    r = torch.full((8, 2), 0.7, dtype=torch.float64)
+    E0 = torch.ones(8, 2, dtype=torch.float64)
+    assert torch.equal(source_irradiance(K, r, E0, 1), torch.zeros(8, 2, dtype=torch.float64))
+    assert torch.allclose(source_irradiance(K, r, E0, 2), E0)
+    assert torch.allclose(source_irradiance(K, r, E0, 3), ti.solve(K, r, E0, bounces=2))
+    assert torch.allclose(source_irradiance(K, r, E0), ti.solve(K, r, E0))
+    v = View((0.03, 0.03, 0.1), (0.03, 0.03, 0.0), (0, 1, 0), height=6, width=6)
+    op = gather_operator(scene, v, [0.0, 0.0, -1.0], cache=False)
+    assert torch.allclose(mix_direct(op, 0.25, sky=True), 0.25 * op.open_sky + 0.75 * op.direct)
+    assert torch.allclose(mix_direct(op, 1.0, sky=False), torch.ones_like(op.direct))
+    with pytest.raises(ValueError, match="shading='gather'"):
+        mix_direct(gather_operator(scene, v, "uniform", shading="flat", cache=False), 0.5, sky=False)

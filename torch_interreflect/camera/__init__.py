@@ -15,7 +15,15 @@
 """
 
 from .facet_rgb import facet_rgb
-from .gather import Gather, gather_operator, gathered_image, gathered_radiance, render_view
+from .gather import (
+    Gather,
+    gather_operator,
+    gathered_image,
+    gathered_radiance,
+    mix_direct,
+    render_view,
+    source_irradiance,
+)
 from .image import add_noise, blur, delta_e, to_lab, to_srgb, white_balance
 from .io import save_image
 from .point_kernel import point_form_factors
@@ -36,11 +44,13 @@ __all__ = [
     "gathered_image",
     "gathered_radiance",
     "look_at",
+    "mix_direct",
     "point_form_factors",
     "project",
     "render_image",
     "render_view",
     "save_image",
+    "source_irradiance",
     "spectral_to_rgb",
     "to_lab",
     "to_srgb",

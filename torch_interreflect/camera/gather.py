@@ -30,12 +30,21 @@ from torch import Tensor, nn
 from ..errors import ShapeError
 from ..geometry.raycast import RayCaster
 from ..geometry.scene import Scene
+from ..solver.api import solve
 from .fragments import coarse_points, primary_fragments
 from .point_kernel import point_form_factors, sparse_matrix
 from .sensor import Camera
 from .view import View
 
-__all__ = ["Gather", "gather_operator", "gathered_image", "gathered_radiance", "render_view"]
+__all__ = [
+    "Gather",
+    "gather_operator",
+    "gathered_image",
+    "gathered_radiance",
+    "mix_direct",
+    "render_view",
+    "source_irradiance",
+]
 
 #: Most operators kept by the cache of :func:`gather_operator`.
 CACHE_SIZE = 8
@@ -360,3 +369,30 @@ def render_view(scene: Scene, reflectance: Tensor, irradiance: Tensor, spd: Tens
     if camera is None:
         return gathered_radiance(op, reflectance, irradiance, spd, shading=shading)
     return gathered_image(op, reflectance, irradiance, spd, camera, shading=shading)
+
+
+def source_irradiance(form_factors: Any, reflectance: Tensor, E0: Tensor, bounces: int | None = None,
+                      **solve_kwargs: Any) -> Tensor:
+    """The facet irradiance an ``n``-bounce image gathers from: the gather adds the last bounce, so it is the
+    ``(n − 1)``-bounce solution (zero for ``n = 1``: direct light only), and the full solution for ``None``.
+
+    Args:
+        form_factors, reflectance, E0, solve_kwargs: As for :func:`torch_interreflect.solve`.
+        bounces: ``None`` (infinite) or ``n ≥ 1``.
+
+    Returns:
+        ``E`` in W·m⁻²·nm⁻¹. Shape that of ``solve``'s output ``[..., F, L]``.
+    """
+    if bounces == 1:
+        return torch.zeros(torch.broadcast_shapes(reflectance.shape, E0.shape), dtype=E0.dtype, device=E0.device)
+    return solve(form_factors, reflectance, E0, bounces=None if bounces is None else bounces - 1, **solve_kwargs)
+
+
+def mix_direct(op: Gather, ambient_weight: float, sky: bool) -> Tensor:
+    """``g0`` per fragment ``[K]`` of the generator's light mix: ``a · ambient + (1 − a) · op.direct`` with the
+    ambient part uniform (1) or the sky's open part at the fragment (``op.open_sky``), as ``g = a g_ambient +
+    (1 − a) g_sun`` per facet; ``op`` built with the sun's direction."""
+    if op.direct is None or op.open_sky is None:
+        raise ValueError("mix_direct needs an operator built with shading='gather'")
+    ambient = op.open_sky if sky else torch.ones_like(op.direct)
+    return ambient_weight * ambient + (1.0 - ambient_weight) * op.direct

@@ -22,7 +22,7 @@ from torch import Tensor, nn
 from .. import spectral
 from ..accuracy.plan import plan
 from ..camera.facet_rgb import facet_rgb
-from ..camera.gather import Gather, gather_operator, gathered_image
+from ..camera.gather import Gather, gather_operator, gathered_image, source_irradiance
 from ..camera.sensor import Camera
 from ..camera.view import View
 from ..errors import GradientWarning, ShapeError
@@ -284,10 +284,8 @@ class Interreflection(nn.Module):
                              "not E0=")
         E = solve(self.form_factors, r, e0, bounces=self.bounces, tol=self.tol, method=self.method)
         rgb = self.camera(radiance(E, r))
-        b = self.bounces
-        if self.shading == "gather" and b is not None:  # the gather adds the last bounce: it gathers E of b - 1
-            E = solve(self.form_factors, r, e0, bounces=b - 1, tol=self.tol, method=self.method) if b > 1 else (
-                torch.zeros_like(E))
+        if self.shading == "gather" and self.bounces is not None:  # the gather adds the last bounce
+            E = source_irradiance(self.form_factors, r, e0, self.bounces, tol=self.tol, method=self.method)
         if self.matrix.requires_grad or self.light_factor.requires_grad:
             warnings.warn("Interreflection(view=): the image's gradient reaches the geometry (and a light direction) "
                           "through the solved facets' light only; the per-pixel kernel is held fixed",

@@ -30,7 +30,7 @@ import torch.nn.functional as nnf
 from torch import Tensor
 
 from .. import spectral
-from ..camera.gather import gather_operator, gathered_image
+from ..camera.gather import gather_operator, gathered_image, mix_direct, source_irradiance
 from ..camera.sensor import Camera
 from ..camera.view import View
 from ..geometry.scene import Scene
@@ -99,9 +99,7 @@ def _gathered_model(geometry: dict[str, Any]) -> tuple[Any, Tensor] | None:
     view = View(v["eye"], v["target"], v["up"], fov_deg=v["fov_deg"], height=v["height"], width=v["width"])
     op = gather_operator(scene, view, sh["sun"], supersample=sh["supersample"], samples=sh["samples"],
                          stride=sh["stride"], cache=False)
-    ambient = op.open_sky if sh["sky"] else torch.ones_like(op.direct)
-    a = sh["ambient_weight"]
-    return op, a * ambient + (1.0 - a) * op.direct
+    return op, mix_direct(op, sh["ambient_weight"], sh["sky"])
 
 
 def _problem(image: Tensor, geometry: dict[str, Any]) -> tuple[Tensor, Tensor, Tensor]:
@@ -168,8 +166,7 @@ def refine_illuminant(
         refl = (r_mean + (a * r_sigma) @ r_comps).clamp(0.01, 0.95)  # [M, L]
         r_f = refl[material]
         if gathered is not None:  # the n-bounce image gathers the (n - 1)-bounce facet light (as the generator)
-            E = torch.zeros_like(r_f) if bounces == 1 else solve(
-                ff, r_f, g[:, None] * spd[None, :], bounces=None if bounces is None else bounces - 1, tol=tol)
+            E = source_irradiance(ff, r_f, g[:, None] * spd[None, :], bounces, tol=tol)
             image_pred = gathered_image(gathered[0], r_f, E, spd, cam, direct=gathered[1])  # [3, H, W]
             return image_pred.reshape(3, -1).T[seen].to(torch.float64), spd, refl
         E = solve(ff, r_f, g[:, None] * spd[None, :], bounces=bounces, tol=tol)

@@ -19,7 +19,7 @@ from torch import Tensor
 
 from .. import spectral
 from .._version import __version__
-from ..camera.gather import gather_operator, gathered_image
+from ..camera.gather import gather_operator, gathered_image, mix_direct, source_irradiance
 from ..camera.projection import project
 from ..camera.sensor import Camera
 from ..camera.view import View
@@ -168,11 +168,8 @@ def _gathered(config: GeneratorConfig, d: _Drawn, K: Any, r: Tensor, e0: Tensor,
     sun = torch.tensor(light["sun_direction"], dtype=torch.float64)
     op = gather_operator(d.scene, view, sun, supersample=config.supersample, samples=config.visibility_samples,
                          stride=config.gather_stride, cache=False)
-    ambient = torch.ones_like(op.direct) if light["ambient"] == "uniform" else op.open_sky
-    a = light["ambient_weight"]
-    direct = a * ambient + (1.0 - a) * op.direct  # [K], as g = a g_ambient + (1 - a) g_sun per facet
-    E = torch.stack([solve(K, r, e0, bounces=b - 1) if b is not None and b > 1 else (
-        torch.zeros_like(e0) if b == 1 else solve(K, r, e0)) for b in config.bounces])  # [V, F, L]
+    direct = mix_direct(op, light["ambient_weight"], light["ambient"] == "sky")  # [K]
+    E = torch.stack([source_irradiance(K, r, e0, b) for b in config.bounces])  # [V, F, L]
     images = gathered_image(op, r, E, d.spd.to(e0), cam, direct=direct).cpu()  # [V, 3, H, W], one sparse product
     return {b: (images[k].permute(1, 2, 0), op) for k, b in enumerate(config.bounces)}
 
