@@ -116,8 +116,7 @@ class Plan:
             leaves while their values stay the plan's. What :func:`~torch_interreflect.form_factors` leaves out is
             left out here (the derivative of ray-cast visibility), and with a ``view`` the image's per-pixel kernel
             (including the sun's per-pixel cosines) is held fixed (a :class:`~torch_interreflect.errors.GradientWarning`
-            says so). Memory grows with the
-            leaves' pairs (the form factors are rebuilt densely).
+            says so). Memory grows with the leaves' pairs (the form factors are rebuilt densely).
 
         Shape:
             - reflectance: ``[..., F, L]`` or ``[..., F]``; illuminant: ``[..., L]``
@@ -161,21 +160,14 @@ class Plan:
         if self.form_factors.matrix.requires_grad:  # built by for_geometry: already carries the graph
             return self.form_factors, self.light_factor, self.leaves.areas
         if not self.scene.corners.requires_grad:  # only the light: its factor on the planned leaves
-            g_moved = light_factor(self.light, self.leaves, self.form_factors, self.leaf_user.to(self.scene.device),
-                                   self.scene.num_facets)
-            g = self.light_factor.detach().to(g_moved.dtype) + (g_moved - g_moved.detach())
-            return self.form_factors, g, self.leaves.areas
+            g = light_factor(self.light, self.leaves, self.form_factors, self.leaf_user.to(self.scene.device),
+                             self.scene.num_facets)
+            return self.form_factors, _straight_through(self.light_factor, g), self.leaves.areas
         moved = self.for_geometry(self.scene)
-        planned = self.form_factors.matrix
-        planned = planned.to_dense() if planned.layout != torch.strided else planned
-        m = moved.form_factors.matrix
-        m = m.to_dense() if m.layout != torch.strided else m
-        K = FormFactors(planned.detach().to(m.dtype) + (m - m.detach()), moved.leaves.areas,
-                        dict(self.form_factors.info))
-        g_moved, a_moved = moved.light_factor, moved.leaves.areas
-        g = self.light_factor.detach().to(g_moved.dtype) + (g_moved - g_moved.detach())
-        areas = self.leaves.areas.detach().to(a_moved.dtype) + (a_moved - a_moved.detach())
-        return K, g, areas
+        matrix = _straight_through(_dense(self.form_factors.matrix), _dense(moved.form_factors.matrix))
+        return (FormFactors(matrix, moved.leaves.areas, dict(self.form_factors.info)),
+                _straight_through(self.light_factor, moved.light_factor),
+                _straight_through(self.leaves.areas, moved.leaves.areas))
 
     def _leaf_light(self) -> Any:
         """The light on the leaves: per-user-facet tensors (a factor or a mask) follow each leaf's user facet."""
@@ -183,6 +175,15 @@ class Plan:
         if isinstance(light, Tensor) and light.ndim == 1 and light.numel() == self.scene.num_facets != 3:
             return light.to(self.leaf_user.device)[self.leaf_user]
         return light
+
+
+def _dense(m: Tensor) -> Tensor:
+    return m.to_dense() if m.layout != torch.strided else m
+
+
+def _straight_through(value: Tensor, moved: Tensor) -> Tensor:
+    """``value`` (detached) carrying the gradient of ``moved``: ``value + (moved − moved.detach())``."""
+    return value.detach().to(moved.dtype) + (moved - moved.detach())
 
 
 def plan(
