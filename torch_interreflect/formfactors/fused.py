@@ -20,16 +20,14 @@ fractions of occluded pairs are kept. It agrees with autograd through the torch 
 
 from __future__ import annotations
 
-import os
-import threading
 from collections.abc import Callable
-from functools import cache
 from typing import Literal
 
 import torch
 from torch import Tensor
 
 from ..geometry._polygon import bilinear, clip_polygons
+from .compiled import launch, loops
 from .contour import point_polygon_factor
 
 __all__ = ["Backend", "fan_sums", "fused_available", "group_sums", "point_sums", "resolve_backend"]
@@ -41,34 +39,9 @@ Visibility = Callable[[Tensor, Tensor, Tensor], Tensor]
 _CHUNK_POINTS = 1 << 21
 
 
-#: One compiled launch at a time (numba's workqueue threading layer does not allow concurrent launches).
-_LAUNCH = threading.Lock()
-
-
-@cache
-def _kernels():
-    """The numba module, or None when numba is missing or disabled (``TI_DISABLE_NUMBA=1``)."""
-    if os.environ.get("TI_DISABLE_NUMBA", "") not in ("", "0"):
-        return None
-    try:
-        import numba
-
-        if "NUMBA_THREADING_LAYER" not in os.environ:
-            # numba's default picks GNU OpenMP here, which is not fork-safe: a process that forks after a fused
-            # kernel (a DataLoader's workers, multiprocessing) was killed ("fork() called from a process already
-            # using GNU OpenMP"), and it shares the OpenMP runtime (and thread count) with torch. The workqueue
-            # layer is fork-safe and separate; its one limit, no concurrent launches from two threads, is kept by
-            # the lock in _run.
-            numba.config.THREADING_LAYER = "workqueue"
-        from . import _numba_kernels
-    except ImportError:  # pragma: no cover - numba is a dependency; a broken install falls back to torch
-        return None
-    return _numba_kernels
-
-
 def fused_available(*tensors: Tensor) -> bool:
     """Whether the compiled loop can take these inputs: numba present, CPU tensors, none requiring grad."""
-    if _kernels() is None:
+    if loops() is None:
         return False
     grad = torch.is_grad_enabled() and any(t.requires_grad for t in tensors)
     return not grad and all(t.device.type == "cpu" for t in tensors)
@@ -79,25 +52,6 @@ def resolve_backend(backend: Backend, *tensors: Tensor) -> bool:
     if backend not in ("auto", "fused", "torch"):
         raise ValueError(f"backend must be 'auto', 'fused' or 'torch'; got {backend!r}")
     return backend != "torch" and fused_available(*tensors)
-
-
-def _run(kernel: Callable[..., None], *args: object) -> None:
-    """Call a compiled kernel with ``torch.get_num_threads()`` threads, leaving torch's thread count as it was.
-
-    numba's OpenMP threading layer shares the OpenMP runtime with torch: setting numba's threads (or launching a
-    parallel region) changes what ``torch.get_num_threads()`` returns. Left alone, a user's (or a test worker's)
-    ``torch.set_num_threads(1)`` silently became 2 after the first form factors, which also matters for
-    correctness (batched LU on torch 2.13 CPU gives invalid pivots with 2 threads).
-    """
-    import numba
-
-    prev = torch.get_num_threads()
-    with _LAUNCH:
-        try:
-            numba.set_num_threads(max(1, min(prev, numba.config.NUMBA_NUM_THREADS)))
-            kernel(*args)
-        finally:
-            torch.set_num_threads(prev)
 
 
 def _np(t: Tensor):
@@ -123,7 +77,12 @@ def _visible_rows(
     if need is None or vis is None or not bool(need.any()):
         return torch.ones(1, u.numel(), dtype=torch.float64), vrow
     rows = torch.nonzero(need).reshape(-1)
-    x, _ = bilinear(quads(rows), u, v)
+    q = quads(rows).detach()
+    if loops() is not None and q.device.type == "cpu":
+        x = torch.empty(rows.numel(), u.numel(), 3, dtype=torch.float64)
+        launch(loops().quad_points, _np(q.double()), _np(u.double()), _np(v.double()), x.numpy())
+    else:
+        x, _ = bilinear(q, u, v)
     vrow[rows] = torch.arange(rows.numel())
     return vis(x, dom[rows], tgt[rows]).to(torch.float64).contiguous(), vrow
 
@@ -147,7 +106,7 @@ class _PolygonSums(torch.autograd.Function):
         args = [_np(t.double()) if t.is_floating_point() else _np(t) for t in (domain, normal, target, count, u, v, w,
                                                                               vis, vrow)]
         if domain.shape[0]:
-            _run(_kernels().polygon_sums, *args, out.numpy())
+            launch(loops().polygon_sums, *args, out.numpy())
         ctx.save_for_backward(domain, normal, target, count, u, v, w, vis, vrow)
         return out.to(domain.dtype)
 
@@ -162,7 +121,7 @@ class _PolygonSums(torch.autograd.Function):
         if P:
             args = [_np(t.double()) if t.is_floating_point() else _np(t) for t in (domain, normal, target, count, u, v,
                                                                                   w, vis, vrow)]
-            _run(_kernels().polygon_sums_grad, *args, _np(gout.double()), gd.numpy(), gn.numpy(), gt.numpy())
+            launch(loops().polygon_sums_grad, *args, _np(gout.double()), gd.numpy(), gn.numpy(), gt.numpy())
         return gd.to(domain.dtype), gn.to(normal.dtype), gt.to(target.dtype), None, None, None, None, None, None
 
 
@@ -176,7 +135,7 @@ class _PairSums(torch.autograd.Function):
         out = torch.empty(dom.numel(), dtype=torch.float64)
         if dom.numel():
             clip = torch.zeros(dom.numel(), dtype=torch.bool)
-            _run(_kernels().pair_sums, _np(corners.double()), _np(normals.double()), _np(cent.double()), _np(dom),
+            launch(loops().pair_sums, _np(corners.double()), _np(normals.double()), _np(cent.double()), _np(dom),
                  _np(tgt), _np(shift), _np(clip), _np(u), _np(v), _np(w), 0.0, _np(vis), _np(vrow), out.numpy())
         ctx.save_for_backward(corners, normals, dom, tgt, shift, u, v, w, vis, vrow)
         return out.to(corners.dtype)
@@ -198,7 +157,7 @@ class _PairSums(torch.autograd.Function):
             gnp = torch.empty(P, 3, dtype=torch.float64)
             gt = torch.empty(P, 4, 3, dtype=torch.float64)
             count = torch.full((P,), 4, dtype=torch.int64)
-            _run(_kernels().polygon_sums_grad, quads.numpy(), _np(n[d]), target.numpy(), count.numpy(), _np(u),
+            launch(loops().polygon_sums_grad, quads.numpy(), _np(n[d]), target.numpy(), count.numpy(), _np(u),
                  _np(v), _np(w), _np(vis), _np(vrow[s : s + step]), _np(gout[s : s + step].double()), gd.numpy(),
                  gnp.numpy(), gt.numpy())
             k = torch.arange(4)
@@ -213,7 +172,7 @@ def _adjoint_wanted(backend: Backend, *tensors: Tensor) -> bool:
     """Whether to run the compiled loop with its adjoint: autograd needs the inputs, numba is there, CPU."""
     if backend not in ("auto", "fused", "torch"):
         raise ValueError(f"backend must be 'auto', 'fused' or 'torch'; got {backend!r}")
-    if backend == "torch" or _kernels() is None:
+    if backend == "torch" or loops() is None:
         return False
     return torch.is_grad_enabled() and any(t.requires_grad for t in tensors) and all(
         t.device.type == "cpu" for t in tensors)
@@ -260,7 +219,7 @@ def group_sums(
         return _adjoint_group_sums(corners, normals, cent, dom, tgt, shift, clip, rule, eps, need, vis)
     if not resolve_backend(backend, corners, normals, cent):
         return _torch_group_sums(corners, normals, cent, dom, tgt, shift, clip, rule, eps, need, vis, chunk_points)
-    k = _kernels()
+    k = loops()
     out = torch.empty(dom.numel(), dtype=torch.float64)
     per = max(64, _CHUNK_POINTS // u.numel())
     c, n, m = _np(corners), _np(normals), _np(cent)
@@ -269,7 +228,7 @@ def group_sums(
         d, t, sh = dom[s : s + per], tgt[s : s + per], shift[s : s + per]
         nd = need[s : s + per] if need is not None else None
         fr, vrow = _visible_rows(nd, vis, lambda r: _domains(corners, d[r], sh[r]), u, v, d, t)  # noqa: B023
-        _run(k.pair_sums, c, n, m, _np(d), _np(t), _np(sh), _np(clip[s : s + per]), un, vn, wn, float(eps),
+        launch(k.pair_sums, c, n, m, _np(d), _np(t), _np(sh), _np(clip[s : s + per]), un, vn, wn, float(eps),
              _np(fr), _np(vrow), out[s : s + per].numpy())
     return out
 
@@ -361,11 +320,11 @@ def fan_sums(
             total = total + _PolygonSums.apply(tri, normal, target, count, u, v, w, fr, vrow)
             continue
         if fused:
-            kern = _kernels()
+            kern = loops()
             fr, vrow = _visible_rows(need, vis, lambda r: tri[r], u, v, dom, tgt)  # noqa: B023
             out = torch.empty(poly.shape[0], dtype=torch.float64)
             count = torch.full((poly.shape[0],), target.shape[1], dtype=torch.int64)
-            _run(kern.polygon_sums, _np(tri), _np(normal), _np(target), _np(count), _np(u), _np(v), _np(w), _np(fr),
+            launch(kern.polygon_sums, _np(tri), _np(normal), _np(target), _np(count), _np(u), _np(v), _np(w), _np(fr),
                  _np(vrow), out.numpy())
             total += out
             continue
@@ -425,6 +384,6 @@ def point_sums(
     ahead = torch.empty(rows.numel(), dtype=torch.bool)
     if rows.numel():
         d = [_np(t.double()) for t in (x, normal)]
-        _run(_kernels().point_factors, *d, _np(rows.long()), _np(polygon.double()), _np(which.long()),
+        launch(loops().point_factors, *d, _np(rows.long()), _np(polygon.double()), _np(which.long()),
              _np(centre.double()), _np(axis.double()), out.numpy(), ahead.numpy())
     return out.to(x.dtype), ahead

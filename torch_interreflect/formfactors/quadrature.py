@@ -18,7 +18,6 @@
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
 from typing import Any, Literal
 
 import torch
@@ -29,26 +28,24 @@ from .._deprecation import renamed_keywords
 from ..errors import ValueRangeError
 from ..geometry._polygon import (
     clip_polygons,
-    facing_matrix,
     plane_eps,
     rotate_to_plane_edge,
-    signed_distances,
 )
 from ..geometry.scene import Scene
 from .checks import check_row_sums, warn_if_wrong_side
+from .compiled import loops
 from .fused import Backend, fan_sums, group_sums
-from .memory import check_memory, dense_kernel_bytes
 from .montecarlo import monte_carlo
 from .operator import FormFactors
-from .rules import default_adjacent_order, order_for, quadrature_rule
+from .pairs import SPARSE_DENSITY, PairClasses, classify_pairs, facing_pairs, rule_groups
+from .rules import quadrature_rule
 from .visibility import VISIBILITY_ANGLE, PointVisibility, blocker_candidates, check_visibility_options
 
 __all__ = ["PairClasses", "classify_pairs", "form_factors", "integrate_clipped", "integrate_groups", "pair_values",
            "rule_groups"]
 
-#: Dense storage up to this many facets; sparse CSR above it when at most ``_SPARSE_DENSITY`` is nonzero.
+#: Dense storage up to this many facets; sparse CSR above it when at most ``SPARSE_DENSITY`` is nonzero.
 _DENSE_MAX_FACETS = 4096
-_SPARSE_DENSITY = 0.25
 
 
 # ------------------------------------------------------------------------------------ main entry
@@ -209,7 +206,7 @@ def _quadrature(
     info: dict = {}
 
     t = time.perf_counter()
-    iu, ju = _facing_pairs(sc, eps, output)
+    iu, ju = facing_pairs(sc, eps, output)
     info["pairs"] = int(iu.numel())
     info["seconds_cull"] = time.perf_counter() - t
     if iu.numel() == 0:
@@ -240,21 +237,27 @@ def pair_entries(areas: Tensor, dom: Tensor, tgt: Tensor, value: Tensor) -> tupl
         - areas: ``[F]`` (m²); dom, tgt, value: ``[P]``
         - output: three ``[≤ 2P]`` tensors
     """
-    rows = torch.cat([dom, tgt])
-    cols = torch.cat([tgt, dom])
-    vals = torch.cat([value / areas[dom], value / areas[tgt]])
-    keep = vals > 0
-    return rows[keep], cols[keep], vals[keep]
+    kern = loops("pairs")
+    if kern is not None and value.device.type == "cpu" and not value.requires_grad:
+        n = 2 * int((value > 0).sum())
+        rows, cols = torch.empty(n, dtype=torch.int64), torch.empty(n, dtype=torch.int64)
+        vals = torch.empty(n, dtype=value.dtype)
+        kern.pair_entries(*(t.contiguous().numpy() for t in (areas.to(value.dtype), dom, tgt, value)), rows.numpy(),
+                          cols.numpy(), vals.numpy())
+        return rows, cols, vals
+    keep = torch.nonzero(value > 0).reshape(-1)  # areas are positive: both directions are kept or dropped together
+    dom, tgt, value = dom[keep], tgt[keep], value[keep]
+    return torch.cat([dom, tgt]), torch.cat([tgt, dom]), torch.cat([value / areas[dom], value / areas[tgt]])
 
 
 def assemble(rows: Tensor, cols: Tensor, vals: Tensor, F: int, layout: str, dtype: torch.dtype) -> tuple[Tensor, str]:
     """The ``[F, F]`` matrix of the entries in ``dtype``, dense or CSR, and the layout used.
 
-    ``layout="auto"`` is dense up to ``_DENSE_MAX_FACETS`` facets and whenever more than ``_SPARSE_DENSITY`` of
+    ``layout="auto"`` is dense up to ``_DENSE_MAX_FACETS`` facets and whenever more than ``SPARSE_DENSITY`` of
     the entries are nonzero, sparse CSR otherwise. Entries are float64 on the CPU (as the quadrature gives them).
     """
     if layout == "auto":
-        sparse = F > _DENSE_MAX_FACETS and rows.numel() <= _SPARSE_DENSITY * F * F
+        sparse = F > _DENSE_MAX_FACETS and rows.numel() <= SPARSE_DENSITY * F * F
         layout = "sparse" if sparse else "dense"
     if layout == "dense":
         mat = torch.zeros(F, F, dtype=torch.float64, device=vals.device)
@@ -262,44 +265,6 @@ def assemble(rows: Tensor, cols: Tensor, vals: Tensor, F: int, layout: str, dtyp
         return mat.to(dtype), layout
     matrix = torch.sparse_coo_tensor(torch.stack([rows, cols]), vals, (F, F)).coalesce()
     return matrix.to(dtype).to_sparse_csr(), layout
-
-
-def _facing_pairs(sc: Scene, eps: float, output: tuple[str, int]) -> tuple[Tensor, Tensor]:
-    """Pairs ``i < j`` of mutually facing facets (float64 CPU scene); checks the memory before each big step.
-
-    ``output``: the layout of the result (``"auto"`` is dense when more than ``_SPARSE_DENSITY`` is nonzero) and
-    the bytes per entry of its dtype.
-    """
-    F = sc.num_facets
-    layout, itemsize = output
-    dense = layout == "dense"
-    remedy = ("use ti.hierarchical_form_factors(scene) (no [F, F] matrix: memory grows like F·leaf_size), or a "
-              "coarser mesh")
-    what = f"form_factors on {F} facets"
-    check_memory(dense_kernel_bytes(F, None, dense, itemsize), what + " ([F, F] facing matrices)", remedy)
-    front = facing_matrix(sc.corners, sc.normals, sc.centroids, eps)
-    upper = torch.triu(front & front.T, diagonal=1)
-    del front
-    pairs = int(upper.sum())
-    dense = dense or (layout == "auto" and 2 * pairs > _SPARSE_DENSITY * F * F)
-    check_memory(dense_kernel_bytes(F, pairs, dense, itemsize), what + f" ({pairs} facet pairs)", remedy)
-    iu, ju = torch.nonzero(upper, as_tuple=True)
-    return iu, ju
-
-
-@dataclass
-class PairClasses:
-    """How each pair ``(dom, tgt)`` is integrated: shared edge / vertex (graded rules), straddling (clipped),
-    or regular (Gauss order from the distance / size ratio). All fields ``[P]``."""
-
-    order: Tensor  # Gauss order per direction for a regular pair
-    rho: Tensor  # centroid distance / larger diameter
-    has_edge: Tensor  # the pair shares an edge (edge-graded rule)
-    has_vertex: Tensor  # the pair shares a vertex only (vertex-graded rule)
-    shift: Tensor  # rotation of the domain's corners that puts the shared edge / vertex first
-    clip_t: Tensor  # a target corner lies behind the domain's plane: clip the target
-    clip_d: Tensor  # a domain corner lies behind the target's plane: integrate over the clipped domain
-    n_adj: int  # Gauss order of the graded rules
 
 
 def pair_values(
@@ -370,57 +335,6 @@ def pair_values(
     ):
         info[key] = info.get(key, 0) + add
     return dom, tgt, value, need, vis
-
-
-def classify_pairs(sc: Scene, dom: Tensor, tgt: Tensor, tol: float, adjacent_order: int | None,
-                   eps: float) -> PairClasses:
-    """Classify pairs ``(dom, tgt)``: shared edge / shared vertex / straddling / regular, and the Gauss orders."""
-    corners, normals, cent, diam = sc.corners, sc.normals, sc.centroids, sc.diameters
-    P = dom.numel()
-    radius = (corners - cent[:, None, :]).norm(dim=-1).max(dim=1).values
-    dist = (cent[dom] - cent[tgt]).norm(dim=-1)
-    rho = dist / torch.maximum(diam[dom], diam[tgt])
-    order = order_for(rho, tol)
-    n_adj = adjacent_order or default_adjacent_order(tol)
-    # shared edges / vertices are only possible where the bounding spheres touch
-    has_edge = torch.zeros(P, dtype=torch.bool)
-    has_vertex = torch.zeros(P, dtype=torch.bool)
-    shift = torch.zeros(P, dtype=torch.int64)
-    near = torch.nonzero(dist <= (radius[dom] + radius[tgt]) * (1 + 1e-6)).reshape(-1)
-    if near.numel():
-        cd, ct = corners[dom[near]], corners[tgt[near]]
-        tol_v = 1e-7 * diam[dom[near]]
-        match = ((cd[:, :, None, :] - ct[:, None, :, :]).norm(dim=-1) <= tol_v[:, None, None]).any(-1)
-        nxt_distinct = (cd - torch.roll(cd, -1, 1)).norm(dim=-1) > tol_v[:, None]
-        edge_k = match & torch.roll(match, -1, 1) & nxt_distinct  # edge k→k+1 of the domain is shared
-        e, vtx = edge_k.any(1), match.any(1) & ~edge_k.any(1)
-        has_edge[near], has_vertex[near] = e, vtx
-        first_edge = torch.argmax(edge_k.to(torch.int8), dim=1)
-        first_vert = torch.argmax(match.to(torch.int8), dim=1)
-        shift[near] = torch.where(e, first_edge, torch.where(vtx, first_vert, torch.zeros_like(first_edge)))
-    # straddling: a target corner strictly behind the domain's plane, or a domain corner behind the target's
-    clip_t = torch.zeros(P, dtype=torch.bool)
-    clip_d = torch.zeros(P, dtype=torch.bool)
-    for s in range(0, P, 1 << 20):
-        a, b = dom[s : s + (1 << 20)], tgt[s : s + (1 << 20)]
-        clip_t[s : s + (1 << 20)] = (signed_distances(corners[b], cent[a], normals[a]) < -eps).any(1)
-        clip_d[s : s + (1 << 20)] = (signed_distances(corners[a], cent[b], normals[b]) < -eps).any(1)
-    return PairClasses(order, rho, has_edge, has_vertex, shift, clip_t, clip_d, n_adj)
-
-
-def rule_groups(cls: PairClasses) -> tuple[list[tuple[str, Tensor, int]], Tensor]:
-    """``(groups, clipped)``: ``(rule kind, pair indices, order)`` for the unclipped pairs, and the clipped pairs."""
-    groups: list[tuple[str, Tensor, int]] = []
-    special = cls.clip_d
-    for kind, mask in (("edge", cls.has_edge & ~special), ("vertex", cls.has_vertex & ~special)):
-        sel = torch.nonzero(mask).reshape(-1)
-        if sel.numel():
-            groups.append((kind, sel, cls.n_adj))
-    regular = ~cls.has_edge & ~cls.has_vertex & ~special
-    for n in torch.unique(cls.order[regular]).tolist():
-        sel = torch.nonzero(regular & (cls.order == n)).reshape(-1)
-        groups.append(("plain", sel, int(n)))
-    return groups, torch.nonzero(special).reshape(-1)
 
 
 def integrate_groups(sc: Scene, dom: Tensor, tgt: Tensor, cls: PairClasses, groups: list[tuple[str, Tensor, int]],

@@ -22,6 +22,7 @@ from ..errors import ValueRangeError
 from ..geometry._polygon import bilinear, clip_polygons, facet_samples, plane_groups
 from ..geometry.raycast import RayCaster
 from ..geometry.scene import Scene
+from .compiled import launch, loops
 from .contour import point_polygon_factor
 
 __all__ = ["VISIBILITY_ANGLE", "PointVisibility", "blocker_candidates", "check_visibility_options"]
@@ -34,7 +35,8 @@ def blocker_candidates(sc: Scene, dom: Tensor, tgt: Tensor, eps: float) -> Tenso
     """Pairs that some third facet could block. Conservative tests per plane group (coplanar facets), so the
     cost is pairs × planes: the group's plane strictly separates corners of the pair, its bounding box overlaps
     the pair's, and its bounding sphere comes within reach of the pair's convex hull (which lies inside the
-    capsule around the segment between the two centroids, of radius the larger facet radius)."""
+    capsule around the segment between the two centroids, of radius the larger facet radius). A compiled loop
+    over pairs on the CPU (:mod:`._numba_pairs`), torch elsewhere."""
     sc = _detached(sc)
     corners, cent = sc.corners, sc.centroids
     need = torch.zeros(dom.numel(), dtype=torch.bool)
@@ -47,6 +49,11 @@ def blocker_candidates(sc: Scene, dom: Tensor, tgt: Tensor, eps: float) -> Tenso
     hi = corners.max(1).values
     g_centre, g_radius = 0.5 * (plo + phi), 0.5 * (phi - plo).norm(dim=-1)
     radius = (corners - cent[:, None, :]).norm(dim=-1).max(dim=1).values
+    kern = loops("pairs")
+    if kern is not None and corners.device.type == "cpu":
+        args = (corners, cent, lo, hi, radius, pn, po, plo, phi, g_centre, g_radius, dom, tgt)
+        launch(kern.blockers, *(t.contiguous().numpy() for t in args), float(eps), need.numpy())
+        return need
     chunk = max(1, (1 << 22) // (8 * n_planes))
     for s in range(0, dom.numel(), chunk):
         a, b = dom[s : s + chunk], tgt[s : s + chunk]

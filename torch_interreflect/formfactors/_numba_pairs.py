@@ -1,0 +1,214 @@
+"""Compiled CPU loops (numba) over facet pairs: culling, classification and blocker tests (internal; see
+:mod:`.pairs` and :func:`.visibility.blocker_candidates`).
+
+Each loop does per pair what the torch reference does with ``[P, ...]`` temporaries, with the same arithmetic
+(signed distances ``((p − o)·n)`` summed x, y, z; Euclidean norms as square roots of summed squares), so the
+boolean classes agree with the torch path except where a quantity lies within rounding of its threshold.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit, prange
+
+
+@njit(cache=True, inline="always")
+def _front(corners, normals, cent, i, j, eps):
+    """Some corner of facet ``j`` lies strictly in front of facet ``i``'s plane."""
+    off = normals[i, 0] * cent[i, 0] + normals[i, 1] * cent[i, 1] + normals[i, 2] * cent[i, 2]
+    for k in range(4):
+        d = (normals[i, 0] * corners[j, k, 0] + normals[i, 1] * corners[j, k, 1]
+             + normals[i, 2] * corners[j, k, 2]) - off
+        if d > eps:
+            return True
+    return False
+
+
+@njit(cache=True)
+def _facing_row(corners, normals, cent, eps, i, iu, ju, m):
+    """Pairs ``(i, j > i)`` of mutually facing facets: counted, and written from ``m`` when ``iu`` is not empty."""
+    F = corners.shape[0]
+    c = 0
+    for j in range(i + 1, F):
+        if _front(corners, normals, cent, i, j, eps) and _front(corners, normals, cent, j, i, eps):
+            if iu.shape[0]:
+                iu[m + c] = i
+                ju[m + c] = j
+            c += 1
+    return c
+
+
+@njit(cache=True, parallel=True)
+def facing_pairs(corners, normals, cent, eps, start, iu, ju, counts):
+    """Pairs ``i < j`` of facets each partly in front of the other: with empty ``iu``/``ju``, ``counts[i]`` of row
+    ``i``; else the pairs of row ``i`` written from ``start[i]``, ``j`` ascending.
+
+    Rows are taken in pairs ``(r, F − 1 − r)`` so every thread gets the same share of the triangle.
+    """
+    F = corners.shape[0]
+    half = (F + 1) // 2
+    for r in prange(half):
+        lo = np.int64(r)
+        hi = np.int64(F - 1 - r)
+        counts[lo] = _facing_row(corners, normals, cent, eps, lo, iu, ju, start[lo])
+        if hi != lo:
+            counts[hi] = _facing_row(corners, normals, cent, eps, hi, iu, ju, start[hi])
+
+
+@njit(cache=True, inline="always")
+def _dist(ax, ay, az, bx, by, bz):
+    dx = ax - bx
+    dy = ay - by
+    dz = az - bz
+    return math.sqrt(dx * dx + dy * dy + dz * dz)
+
+
+@njit(cache=True, inline="always")
+def _behind(corners, cent, normals, j, i, eps):
+    """Some corner of facet ``j`` lies strictly behind facet ``i``'s plane (signed distance < −eps)."""
+    for k in range(4):
+        d = ((corners[j, k, 0] - cent[i, 0]) * normals[i, 0] + (corners[j, k, 1] - cent[i, 1]) * normals[i, 1]
+             + (corners[j, k, 2] - cent[i, 2]) * normals[i, 2])
+        if d < -eps:
+            return True
+    return False
+
+
+@njit(cache=True, parallel=True)
+def classify(corners, normals, cent, diam, radius, dom, tgt, eps, rho, has_edge, has_vertex, shift, clip_t, clip_d):
+    """Per pair ``(dom, tgt)``: ``rho`` (centroid distance / larger diameter), shared edge / shared vertex and the
+    rotation of the domain's corners that puts it first, and whether the target (domain) crosses the domain's
+    (target's) plane. See :func:`.pairs.classify_pairs`."""
+    P = dom.shape[0]
+    for p in prange(P):
+        a = dom[p]
+        b = tgt[p]
+        dist = _dist(cent[a, 0], cent[a, 1], cent[a, 2], cent[b, 0], cent[b, 1], cent[b, 2])
+        rho[p] = dist / max(diam[a], diam[b])
+        e = False
+        vtx = False
+        sh = 0
+        if dist <= (radius[a] + radius[b]) * (1 + 1e-6):
+            tol_v = 1e-7 * diam[a]
+            mask = 0  # bit k: domain corner k coincides with a target corner
+            for k in range(4):
+                for l in range(4):
+                    if _dist(corners[a, k, 0], corners[a, k, 1], corners[a, k, 2],
+                             corners[b, l, 0], corners[b, l, 1], corners[b, l, 2]) <= tol_v:
+                        mask |= 1 << k
+            first_edge = -1
+            first_vert = -1
+            for k in range(4):
+                k1 = (k + 1) % 4
+                mk = (mask >> k) & 1 == 1
+                mk1 = (mask >> k1) & 1 == 1
+                distinct = _dist(corners[a, k, 0], corners[a, k, 1], corners[a, k, 2],
+                                 corners[a, k1, 0], corners[a, k1, 1], corners[a, k1, 2]) > tol_v
+                if mk and first_vert < 0:
+                    first_vert = k
+                if mk and mk1 and distinct and first_edge < 0:
+                    first_edge = k
+            e = first_edge >= 0
+            vtx = first_vert >= 0 and not e
+            if e:
+                sh = first_edge
+            elif vtx:
+                sh = first_vert
+        has_edge[p] = e
+        has_vertex[p] = vtx
+        shift[p] = sh
+        clip_t[p] = _behind(corners, cent, normals, b, a, eps)
+        clip_d[p] = _behind(corners, cent, normals, a, b, eps)
+
+
+@njit(cache=True, parallel=True)
+def blockers(corners, cent, lo, hi, radius, pn, po, plo, phi, g_centre, g_radius, dom, tgt, eps, need):
+    """``need[p]``: some plane group could block pair ``(dom, tgt)`` (see
+    :func:`.visibility.blocker_candidates`)."""
+    P = dom.shape[0]
+    G = pn.shape[0]
+    for p in prange(P):
+        a = dom[p]
+        b = tgt[p]
+        ca0, ca1, ca2 = cent[a, 0], cent[a, 1], cent[a, 2]
+        s0, s1, s2 = cent[b, 0] - ca0, cent[b, 1] - ca1, cent[b, 2] - ca2
+        ss = max(s0 * s0 + s1 * s1 + s2 * s2, 1e-300)
+        rr = max(radius[a], radius[b])
+        found = False
+        for g in range(G):
+            # the group's box overlaps the pair's
+            ok = True
+            for x in range(3):
+                blo = min(lo[a, x], lo[b, x])
+                bhi = max(hi[a, x], hi[b, x])
+                if not (plo[g, x] < bhi - eps and phi[g, x] > blo + eps):
+                    ok = False
+                    break
+            if not ok:
+                continue
+            # the group's bounding sphere within reach of the capsule around the centroids' segment
+            t = ((g_centre[g, 0] - ca0) * s0 + (g_centre[g, 1] - ca1) * s1 + (g_centre[g, 2] - ca2) * s2) / ss
+            t = min(max(t, 0.0), 1.0)
+            if _dist(g_centre[g, 0], g_centre[g, 1], g_centre[g, 2], ca0 + t * s0, ca1 + t * s1,
+                     ca2 + t * s2) > rr + g_radius[g] + eps:
+                continue
+            # the group's plane strictly separates corners of the pair
+            above = False
+            below = False
+            for f in (a, b):
+                for k in range(4):
+                    d = (corners[f, k, 0] * pn[g, 0] + corners[f, k, 1] * pn[g, 1]
+                         + corners[f, k, 2] * pn[g, 2]) - po[g]
+                    above |= d > eps
+                    below |= d < -eps
+            if above and below:
+                found = True
+                break
+        need[p] = found
+
+
+@njit(cache=True, parallel=True)
+def gauss_orders(rho, digits, order):
+    """``order[p]`` = the Gauss order of :func:`.rules.order_for` for ``rho[p]`` (same formula, per pair)."""
+    for p in prange(rho.shape[0]):
+        n = math.ceil(digits / (2.0 * math.log10(1.0 + 2.0 * max(rho[p], 0.05))))
+        order[p] = min(max(n, 1), 40)
+
+
+@njit(cache=True)
+def stable_buckets(key, n_keys, idx, counts):
+    """Counting sort: ``idx`` lists the positions of ``key`` (ints in ``[0, n_keys)``) by key, ascending within a
+    key; ``counts[k]`` is the size of bucket ``k``."""
+    for p in range(key.shape[0]):
+        counts[key[p]] += 1
+    start = np.zeros(n_keys, dtype=np.int64)
+    for k in range(1, n_keys):
+        start[k] = start[k - 1] + counts[k - 1]
+    for p in range(key.shape[0]):
+        k = key[p]
+        idx[start[k]] = p
+        start[k] += 1
+
+
+@njit(cache=True)
+def pair_entries(areas, dom, tgt, value, rows, cols, vals):
+    """Both directions of the pairs with ``value > 0``: ``F_dom,tgt = value / A_dom`` first (in pair order), then
+    ``F_tgt,dom = value / A_tgt``; ``rows``, ``cols``, ``vals`` hold twice the kept pairs."""
+    m = 0
+    for p in range(dom.shape[0]):
+        if value[p] > 0:
+            m += 1
+    k = 0
+    for p in range(dom.shape[0]):
+        if value[p] > 0:
+            a = dom[p]
+            b = tgt[p]
+            rows[k] = a
+            cols[k] = b
+            vals[k] = value[p] / areas[a]
+            rows[m + k] = b
+            cols[m + k] = a
+            vals[m + k] = value[p] / areas[b]
+            k += 1

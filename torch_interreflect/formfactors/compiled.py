@@ -1,0 +1,67 @@
+"""The compiled CPU loops' runtime: loading numba's modules and launching their parallel loops.
+
+:func:`loops` gives the numba module of a stage (``"quadrature"``: the fused contour sums and their adjoints;
+``"pairs"``: culling, classification and blocker tests of facet pairs), or None when numba is missing or disabled
+(``TI_DISABLE_NUMBA=1``): callers then use their torch path. :func:`launch` runs one loop with
+``torch.get_num_threads()`` threads.
+"""
+
+from __future__ import annotations
+
+import importlib
+import os
+import threading
+from collections.abc import Callable
+from functools import cache
+from types import ModuleType
+
+import torch
+
+__all__ = ["launch", "loops"]
+
+_MODULES = {"quadrature": "._numba_kernels", "pairs": "._numba_pairs"}
+
+#: One compiled launch at a time (numba's workqueue threading layer does not allow concurrent launches).
+_LAUNCH = threading.Lock()
+
+
+@cache
+def loops(stage: str = "quadrature") -> ModuleType | None:
+    """The numba module of ``stage`` (``"quadrature"`` or ``"pairs"``), or None when numba is missing or disabled
+    (``TI_DISABLE_NUMBA=1``)."""
+    if stage not in _MODULES:
+        raise ValueError(f"stage must be one of {sorted(_MODULES)}; got {stage!r}")
+    if os.environ.get("TI_DISABLE_NUMBA", "") not in ("", "0"):
+        return None
+    try:
+        import numba
+
+        if "NUMBA_THREADING_LAYER" not in os.environ:
+            # numba's default picks GNU OpenMP here, which is not fork-safe: a process that forks after a fused
+            # kernel (a DataLoader's workers, multiprocessing) was killed ("fork() called from a process already
+            # using GNU OpenMP"), and it shares the OpenMP runtime (and thread count) with torch. The workqueue
+            # layer is fork-safe and separate; its one limit, no concurrent launches from two threads, is kept by
+            # the lock in launch.
+            numba.config.THREADING_LAYER = "workqueue"
+        return importlib.import_module(_MODULES[stage], __package__)
+    except ImportError:  # pragma: no cover - numba is a dependency; a broken install falls back to torch
+        return None
+
+
+def launch(kernel: Callable[..., object], *args: object) -> object:
+    """Call a compiled kernel with ``torch.get_num_threads()`` threads, leaving torch's thread count as it was.
+
+    numba's OpenMP threading layer shares the OpenMP runtime with torch: setting numba's threads (or launching a
+    parallel region) changes what ``torch.get_num_threads()`` returns. Left alone, a user's (or a test worker's)
+    ``torch.set_num_threads(1)`` silently became 2 after the first form factors, which also matters for
+    correctness (batched LU on torch 2.13 CPU gives invalid pivots with 2 threads).
+    """
+    import numba
+
+    prev = torch.get_num_threads()
+    with _LAUNCH:
+        try:
+            numba.set_num_threads(max(1, min(prev, numba.config.NUMBA_NUM_THREADS)))
+            return kernel(*args)
+        finally:
+            torch.set_num_threads(prev)

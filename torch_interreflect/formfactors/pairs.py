@@ -1,0 +1,153 @@
+"""Facet pairs of the quadrature: which pairs exchange light (culling), and how each is integrated
+(classification into shared-edge, shared-vertex, straddling and regular pairs, and the Gauss order of each).
+
+On the CPU both run as compiled loops over pairs (:mod:`._numba_pairs`, every core, no ``[F, F]`` or
+``[P, 4, 4]`` temporaries); elsewhere, or without numba (``TI_DISABLE_NUMBA=1``), in torch, which is the
+reference the loops follow (``tests/formfactors/test_pairs.py`` checks they agree).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from ..geometry._polygon import facing_matrix, signed_distances
+from ..geometry.scene import Scene
+from .compiled import launch, loops
+from .memory import check_memory, dense_kernel_bytes
+from .rules import default_adjacent_order, order_for
+
+__all__ = ["SPARSE_DENSITY", "PairClasses", "classify_pairs", "facing_pairs", "rule_groups"]
+
+#: With ``layout="auto"``, a matrix is stored sparse only when at most this share of its entries is nonzero.
+SPARSE_DENSITY = 0.25
+
+
+def facing_pairs(sc: Scene, eps: float, output: tuple[str, int]) -> tuple[Tensor, Tensor]:
+    """Pairs ``i < j`` of mutually facing facets (float64 CPU scene); checks the memory before each big step.
+
+    ``output``: the layout of the result (``"auto"`` is dense when more than ``SPARSE_DENSITY`` is nonzero) and
+    the bytes per entry of its dtype.
+    """
+    F = sc.num_facets
+    layout, itemsize = output
+    dense = layout == "dense"
+    remedy = ("use ti.hierarchical_form_factors(scene) (no [F, F] matrix: memory grows like F·leaf_size), or a "
+              "coarser mesh")
+    what = f"form_factors on {F} facets"
+    check_memory(dense_kernel_bytes(F, None, dense, itemsize), what + " ([F, F] facing matrices)", remedy)
+    kern = loops("pairs")
+    if kern is None:
+        front = facing_matrix(sc.corners, sc.normals, sc.centroids, eps)
+        upper = torch.triu(front & front.T, diagonal=1)
+        del front
+        pairs = int(upper.sum())
+    else:
+        c, n, m = (t.detach().contiguous().numpy() for t in (sc.corners, sc.normals, sc.centroids))
+        counts = np.zeros(F, dtype=np.int64)
+        none = np.empty(0, dtype=np.int64)
+        launch(kern.facing_pairs, c, n, m, float(eps), counts, none, none, counts)
+        pairs = int(counts.sum())
+    dense = dense or (layout == "auto" and 2 * pairs > SPARSE_DENSITY * F * F)
+    check_memory(dense_kernel_bytes(F, pairs, dense, itemsize), what + f" ({pairs} facet pairs)", remedy)
+    if kern is None:
+        iu, ju = torch.nonzero(upper, as_tuple=True)
+        return iu, ju
+    start = np.zeros(F, dtype=np.int64)
+    np.cumsum(counts[:-1], out=start[1:])
+    iu, ju = np.empty(pairs, dtype=np.int64), np.empty(pairs, dtype=np.int64)
+    launch(kern.facing_pairs, c, n, m, float(eps), start, iu, ju, np.empty(F, dtype=np.int64))
+    return torch.from_numpy(iu), torch.from_numpy(ju)
+
+
+@dataclass
+class PairClasses:
+    """How each pair ``(dom, tgt)`` is integrated: shared edge / vertex (graded rules), straddling (clipped),
+    or regular (Gauss order from the distance / size ratio). All fields ``[P]``."""
+
+    order: Tensor  # Gauss order per direction for a regular pair
+    rho: Tensor  # centroid distance / larger diameter
+    has_edge: Tensor  # the pair shares an edge (edge-graded rule)
+    has_vertex: Tensor  # the pair shares a vertex only (vertex-graded rule)
+    shift: Tensor  # rotation of the domain's corners that puts the shared edge / vertex first
+    clip_t: Tensor  # a target corner lies behind the domain's plane: clip the target
+    clip_d: Tensor  # a domain corner lies behind the target's plane: integrate over the clipped domain
+    n_adj: int  # Gauss order of the graded rules
+
+
+
+
+def classify_pairs(sc: Scene, dom: Tensor, tgt: Tensor, tol: float, adjacent_order: int | None,
+                   eps: float) -> PairClasses:
+    """Classify pairs ``(dom, tgt)``: shared edge / shared vertex / straddling / regular, and the Gauss orders."""
+    corners, normals, cent, diam = sc.corners, sc.normals, sc.centroids, sc.diameters
+    P = dom.numel()
+    radius = (corners - cent[:, None, :]).norm(dim=-1).max(dim=1).values
+    n_adj = adjacent_order or default_adjacent_order(tol)
+    kern = loops("pairs")
+    if kern is not None and corners.device.type == "cpu":
+        rho = torch.empty(P, dtype=torch.float64)
+        has_edge, has_vertex, clip_t, clip_d = (torch.empty(P, dtype=torch.bool) for _ in range(4))
+        shift = torch.empty(P, dtype=torch.int64)
+        args = [t.detach().contiguous().numpy() for t in (corners, normals, cent, diam, radius, dom, tgt)]
+        launch(kern.classify, *args, float(eps), *(t.numpy() for t in (rho, has_edge, has_vertex, shift, clip_t,
+                                                                       clip_d)))
+        order = torch.empty(P, dtype=torch.int64)
+        launch(kern.gauss_orders, rho.numpy(), max(-math.log10(tol), 1.0), order.numpy())
+        return PairClasses(order, rho, has_edge, has_vertex, shift, clip_t, clip_d, n_adj)
+    dist = (cent[dom] - cent[tgt]).norm(dim=-1)
+    rho = dist / torch.maximum(diam[dom], diam[tgt])
+    order = order_for(rho, tol)
+    # shared edges / vertices are only possible where the bounding spheres touch
+    has_edge = torch.zeros(P, dtype=torch.bool)
+    has_vertex = torch.zeros(P, dtype=torch.bool)
+    shift = torch.zeros(P, dtype=torch.int64)
+    near = torch.nonzero(dist <= (radius[dom] + radius[tgt]) * (1 + 1e-6)).reshape(-1)
+    if near.numel():
+        cd, ct = corners[dom[near]], corners[tgt[near]]
+        tol_v = 1e-7 * diam[dom[near]]
+        match = ((cd[:, :, None, :] - ct[:, None, :, :]).norm(dim=-1) <= tol_v[:, None, None]).any(-1)
+        nxt_distinct = (cd - torch.roll(cd, -1, 1)).norm(dim=-1) > tol_v[:, None]
+        edge_k = match & torch.roll(match, -1, 1) & nxt_distinct  # edge k→k+1 of the domain is shared
+        e, vtx = edge_k.any(1), match.any(1) & ~edge_k.any(1)
+        has_edge[near], has_vertex[near] = e, vtx
+        first_edge = torch.argmax(edge_k.to(torch.int8), dim=1)
+        first_vert = torch.argmax(match.to(torch.int8), dim=1)
+        shift[near] = torch.where(e, first_edge, torch.where(vtx, first_vert, torch.zeros_like(first_edge)))
+    # straddling: a target corner strictly behind the domain's plane, or a domain corner behind the target's
+    clip_t = torch.zeros(P, dtype=torch.bool)
+    clip_d = torch.zeros(P, dtype=torch.bool)
+    for s in range(0, P, 1 << 20):
+        a, b = dom[s : s + (1 << 20)], tgt[s : s + (1 << 20)]
+        clip_t[s : s + (1 << 20)] = (signed_distances(corners[b], cent[a], normals[a]) < -eps).any(1)
+        clip_d[s : s + (1 << 20)] = (signed_distances(corners[a], cent[b], normals[b]) < -eps).any(1)
+    return PairClasses(order, rho, has_edge, has_vertex, shift, clip_t, clip_d, n_adj)
+
+
+def rule_groups(cls: PairClasses) -> tuple[list[tuple[str, Tensor, int]], Tensor]:
+    """``(groups, clipped)``: ``(rule kind, pair indices, order)`` for the unclipped pairs (edge-graded, then
+    vertex-graded, then plain Gauss by ascending order; indices ascending in each), and the clipped pairs."""
+    special = cls.clip_d
+    # one key per pair and one stable sort: 0 edge, 1 vertex, 1 + n plain of order n, 64 clipped
+    key = torch.where(cls.has_edge, 0, torch.where(cls.has_vertex, 1, 1 + cls.order))
+    key = torch.where(special, 64, key)
+    kern = loops("pairs")
+    if kern is not None and key.device.type == "cpu":
+        idx = torch.empty(key.numel(), dtype=torch.int64)
+        counts_np = np.zeros(65, dtype=np.int64)
+        kern.stable_buckets(key.contiguous().numpy(), 65, idx.numpy(), counts_np)
+        counts = counts_np.tolist()
+    else:
+        keys, idx = torch.sort(key, stable=True)
+        counts = torch.bincount(keys, minlength=65).tolist()
+    parts = torch.split(idx, counts)
+    groups: list[tuple[str, Tensor, int]] = []
+    for k, sel in enumerate(parts[:64]):
+        if sel.numel():
+            kind, n = ("edge", cls.n_adj) if k == 0 else ("vertex", cls.n_adj) if k == 1 else ("plain", k - 1)
+            groups.append((kind, sel, n))
+    return groups, parts[64]
