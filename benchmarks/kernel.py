@@ -1,7 +1,8 @@
 """The form-factor kernel alone: torch quadrature (before) vs the fused compiled loop (after), in one run.
 
 For each scene (the 1,024- and 4,624-facet Cornell boxes without the light, the 5,000-facet V-groove) and each
-configuration (torch with all threads; fused with 1 thread and with all threads), one fresh subprocess builds
+configuration (torch with all threads and no compiled loop, ``TI_DISABLE_NUMBA=1``; fused with 1 thread and with
+all threads), one fresh subprocess builds
 ``form_factors(scene, backend=...)`` with the default settings and reports the quadrature seconds (the kernel),
 the visibility seconds, the total, the per-point cost and the peak resident memory added by the call. The
 fused-loop floor is measured here too: a serial compiled loop that evaluates the same contour formula for
@@ -115,9 +116,11 @@ def one(scene_expr: str, backend: str, threads: int) -> dict:
 
 
 def run_one(scene_expr: str, backend: str, threads: int) -> dict:
+    # the torch path of before: no compiled loop anywhere (culling and classification included)
+    env = dict(os.environ, TI_DISABLE_NUMBA="1" if backend == "torch" else "0")
     out = subprocess.run(
         [sys.executable, __file__, "--one", scene_expr, backend, str(threads)],
-        check=True, capture_output=True, text=True,
+        check=True, capture_output=True, text=True, env=env,
     )
     return json.loads(out.stdout.strip().splitlines()[-1])
 
