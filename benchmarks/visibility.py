@@ -30,8 +30,10 @@ from ._common.ours import split_and_subdivide
 from ._common.report import rel_errors
 
 RESULTS = Path(__file__).resolve().parent / "results"
-#: (visibility_samples, visibility_tol, visibility_angle); the first is the default, the last the reference
-SETTINGS = [(3, None, 0.3), (3, None, None), (3, 1e-3, None), (10, None, None), (30, None, None)]
+#: (visibility_samples, visibility_tol, visibility_angle, visibility_jitter); the first is the default, the second
+#: the default before jittered samples (cell midpoints), the last the reference
+SETTINGS = [(3, None, 0.3, True), (3, None, 0.3, False), (3, None, None, True), (3, 1e-3, None, True),
+            (10, None, None, True), (30, None, None, True)]
 
 
 def run(name: str, ks: list[int], split_only: tuple[int, ...] = ()) -> list[dict]:
@@ -45,18 +47,20 @@ def run(name: str, ks: list[int], split_only: tuple[int, ...] = ()) -> list[dict
     for k in ks:
         fine, parent = scene.subdivide(k)
         got = {}
-        for n, tol, angle in SETTINGS:
+        for n, tol, angle, jitter in SETTINGS:
             t0 = time.perf_counter()
-            K = ti.form_factors(fine, visibility_samples=n, visibility_tol=tol, visibility_angle=angle, progress=False)
+            K = ti.form_factors(fine, visibility_samples=n, visibility_tol=tol, visibility_angle=angle,
+                                visibility_jitter=jitter, progress=False)
             seconds = time.perf_counter() - t0
             e0 = ti.lights.sky(fine, K, torch.full((1,), radiance, dtype=torch.float64))
             e = ti.solve(K, torch.full((fine.num_facets,), r, dtype=torch.float64), e0)
             ec = scene.average_to_parent(e.reshape(fine.num_facets, -1), parent, fine).numpy().reshape(-1)
-            got[(n, tol, angle)] = (seconds, int(K.info.get("rays", 0)), ec)
+            got[(n, tol, angle, jitter)] = (seconds, int(K.info.get("rays", 0)), ec)
         best = got[SETTINGS[-1]][2]
-        for (n, tol, angle), (seconds, rays, ec) in got.items():
+        for (n, tol, angle, jitter), (seconds, rays, ec) in got.items():
             rows.append({
                 "scene": name, "k": k, "facets": fine.num_facets, "n": n, "tol": tol, "angle": angle,
+                "jitter": jitter,
                 "seconds": seconds,
                 "rays": rays, "total": rel_errors(ec, e_ref)[0],
                 "visibility": float(np.sqrt(np.mean(((ec - best) / e_ref) ** 2))),
@@ -78,7 +82,8 @@ def _split_row(name: str, scene, k: int, r: float, radiance: float, e_ref: np.nd
     e = ti.solve(K, torch.full((fine.num_facets,), r, dtype=torch.float64), e0)
     ec = area_average(e.reshape(fine.num_facets, -1), user, fine.areas, scene.num_facets)
     ec = ec.numpy().reshape(-1)
-    row = {"scene": name, "k": k, "facets": fine.num_facets, "n": 3, "tol": None, "angle": 0.3, "seconds": seconds,
+    row = {"scene": name, "k": k, "facets": fine.num_facets, "n": 3, "tol": None, "angle": 0.3, "jitter": True,
+           "seconds": seconds,
            "rays": int(K.info.get("rays", 0)), "total": rel_errors(ec, e_ref)[0],
            "visibility": float("nan"), "bias": float(np.mean((ec - e_ref) / e_ref)), "contacts": True}
     print(row, flush=True)
@@ -94,7 +99,9 @@ def write(rows: list[dict], path: Path) -> None:
         "Times: wall seconds of `form_factors` on this 2-core machine, one run each.",
         "",
         "*split* rows: the scene split at its contact lines (`ti.geometry.split_at_contacts`: the floor cut around",
-        "the blocks) before `subdivide(k)`, default visibility; *bias*: mean signed relative error.",
+        "the blocks) before `subdivide(k)`, default visibility; *bias*: mean signed relative error. *jittered*: each",
+        "quadrature point's rays go to one point per cell at an offset of its own (`visibility_jitter=True`, the",
+        "default); *midpoints*: to the cell midpoints (the default before).",
         "",
         "| scene | k | facets | visibility | kernel s | rays | total | bias | visibility part | part / total |",
         "|---|---:|---:|---|---:|---:|---:|---:|---:|---:|",
@@ -102,7 +109,9 @@ def write(rows: list[dict], path: Path) -> None:
     for w in rows:
         setting = ("split, " if w["contacts"] else "") + f"n={w['n']}" + (
             f", tol={w['tol']:g}" if w["tol"] is not None else "") + (
-            f", angle={w['angle']:g} (default)" if w["angle"] is not None else "")
+            f", angle={w['angle']:g}" if w["angle"] is not None else "") + (
+            "" if w["tol"] is not None else ", jittered" if w["jitter"] else ", midpoints") + (
+            " (default)" if w["angle"] is not None and w["jitter"] else " (default before)" if w["angle"] else "")
         part = w["visibility"] / w["total"] if w["total"] > 0 else float("nan")
         vis = "–" if w["contacts"] else f"{100 * w['visibility']:.3f} %"
         ratio = "–" if w["contacts"] else f"{part:.2f}"

@@ -194,8 +194,9 @@ def test_moving_blocker_bias_of_the_interior_term():
     s2, h2 = (t.detach().clone().requires_grad_(True) for t in (shift, height))
     ref = blocked_plates_oracle(s2, h2)
     r_shift, r_height = torch.autograd.grad(ref, (s2, h2))
-    # the value: visibility from 3 × 3 rays per quadrature point, 0.25 % from the exact 0.13333 (measured)
-    assert abs(float(value.detach()) - float(ref.detach())) < 7.5e-3 * float(ref.detach())
+    # the value: visibility from 3 × 3 jittered rays per quadrature point, 1.2 % from the exact 0.13333 (measured;
+    # 0.25 % with the cell midpoints, which happen to suit this one pair)
+    assert abs(float(value.detach()) - float(ref.detach())) < 1.5e-2 * float(ref.detach())
     # the blocker moving sideways changes F only through visibility: the interior term is exactly 0, the true
     # derivative 0.0675 (the bias is the whole derivative)
     assert float(g_shift) == 0.0

@@ -60,6 +60,7 @@ def form_factors(
     visibility_samples: int = 3,
     visibility_tol: float | None = None,
     visibility_angle: float | None = VISIBILITY_ANGLE,
+    visibility_jitter: bool = True,
     rays_per_facet: int = 100_000,
     layout: Literal["auto", "dense", "sparse"] = "auto",
     generator: torch.Generator | None = None,
@@ -97,6 +98,11 @@ def form_factors(
             direction, at most ``visibility_samples``; ``None`` gives every target ``visibility_samples``. On the
             Cornell box at 3,200 facets the default casts 5.8× fewer rays (kernel 2.6× faster) for 0.206 % against
             0.187 % error (``benchmarks/results/visibility.md``).
+        visibility_jitter: With the fixed grid, each quadrature point casts its rays to one point per cell at an
+            offset of its own (a deterministic low-discrepancy lattice,
+            :func:`~torch_interreflect.formfactors.visibility.grid_offsets`) rather than to the cell midpoints, so
+            the points of a pair sample the target at many more places and a thin blocker cannot hide (or miss)
+            a whole target; ``False`` casts to the midpoints (the behaviour of 0.1).
         rays_per_facet: Rays per facet for ``method="monte_carlo"`` (formerly ``samples``).
         layout: Storage of the matrix: dense, sparse CSR, or chosen by size and density.
         generator: Random generator for ``method="monte_carlo"``.
@@ -159,7 +165,7 @@ def form_factors(
         rows, cols, vals, info = _quadrature(
             scene, occlusion, quadrature_tol, adjacent_order, visibility_samples, chunk_points, progress,
             output=(layout, itemsize), backend=backend, visibility_tol=visibility_tol,
-            visibility_angle=visibility_angle,
+            visibility_angle=visibility_angle, visibility_jitter=visibility_jitter,
         )
     info["max_row_sum"] = check_row_sums(rows, vals, F, quadrature_tol, method, occlusion, info.get("occluded_facets"))
     out_dtype, dev = scene.dtype, scene.device
@@ -199,6 +205,7 @@ def _quadrature(
     backend: Backend = "auto",
     visibility_tol: float | None = None,
     visibility_angle: float | None = VISIBILITY_ANGLE,
+    visibility_jitter: bool = True,
 ) -> tuple[Tensor, Tensor, Tensor, dict]:
     sc = scene.to(torch.float64).to("cpu")
     F = sc.num_facets
@@ -218,6 +225,7 @@ def _quadrature(
     dom, tgt, value, need, vis = pair_values(
         sc, iu, ju, occlusion, tol, adjacent_order, visibility_samples, chunk_points, progress, info, eps,
         backend=backend, visibility_tol=visibility_tol, visibility_angle=visibility_angle,
+        visibility_jitter=visibility_jitter,
     )
 
     # facets with a pair whose visibility was estimated by rays: their row sums are estimates, not exact
@@ -283,6 +291,7 @@ def pair_values(
     backend: Backend = "auto",
     visibility_tol: float | None = None,
     visibility_angle: float | None = VISIBILITY_ANGLE,
+    visibility_jitter: bool = True,
 ) -> tuple[Tensor, Tensor, Tensor, Tensor, PointVisibility | None]:
     """``A_i F_ij`` for given pairs ``(iu, ju)`` of mutually facing facets of ``sc`` (float64, CPU).
 
@@ -291,8 +300,8 @@ def pair_values(
     from rays, and the visibility object (``vis`` when given, reused across calls). Adds ``points``,
     ``seconds_quadrature``, ``seconds_visibility``, ``pairs_adjacent`` and ``pairs_clipped`` to ``info``
     (accumulating over calls). ``tol`` is the quadrature tolerance (``quadrature_tol`` of :func:`form_factors`);
-    ``backend``, ``visibility_tol``, ``visibility_angle``: see :func:`form_factors` (a ``vis`` given keeps its
-    own).
+    ``backend``, ``visibility_tol``, ``visibility_angle``, ``visibility_jitter``: see :func:`form_factors` (a
+    ``vis`` given keeps its own).
     """
     areas = sc.areas
     # integrate over the smaller facet of each pair (the "domain"), contour over the other ("target")
@@ -314,7 +323,8 @@ def pair_values(
     else:
         need = blocker_candidates(sc, dom, tgt, eps)
     if vis is None and bool(need.any()):
-        vis = PointVisibility(sc, visibility_samples, tol=visibility_tol, angle=visibility_angle)
+        vis = PointVisibility(sc, visibility_samples, tol=visibility_tol, angle=visibility_angle,
+                              jitter=visibility_jitter)
     vis_before = vis.seconds if vis is not None else 0.0
     seconds_vis = time.perf_counter() - t_vis
 
