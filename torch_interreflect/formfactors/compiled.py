@@ -1,7 +1,8 @@
 """The compiled CPU loops' runtime: loading numba's modules and launching their parallel loops.
 
 :func:`loops` gives the numba module of a stage (``"quadrature"``: the fused contour sums and their adjoints;
-``"pairs"``: culling, classification and blocker tests of facet pairs), or None when numba is missing or disabled
+``"pairs"``: culling, classification and blocker tests of facet pairs; ``"visibility"``: rays and visible
+fractions of the fixed-grid visibility estimate), or None when numba is missing or disabled
 (``TI_DISABLE_NUMBA=1``): callers then use their torch path. :func:`launch` runs one loop with
 ``torch.get_num_threads()`` threads.
 """
@@ -19,7 +20,7 @@ import torch
 
 __all__ = ["launch", "loops"]
 
-_MODULES = {"quadrature": "._numba_kernels", "pairs": "._numba_pairs"}
+_MODULES = {"quadrature": "._numba_kernels", "pairs": "._numba_pairs", "visibility": "._numba_visibility"}
 
 #: One compiled launch at a time (numba's workqueue threading layer does not allow concurrent launches).
 _LAUNCH = threading.Lock()
@@ -27,8 +28,8 @@ _LAUNCH = threading.Lock()
 
 @cache
 def loops(stage: str = "quadrature") -> ModuleType | None:
-    """The numba module of ``stage`` (``"quadrature"`` or ``"pairs"``), or None when numba is missing or disabled
-    (``TI_DISABLE_NUMBA=1``)."""
+    """The numba module of ``stage`` (``"quadrature"``, ``"pairs"`` or ``"visibility"``), or None when numba is
+    missing or disabled (``TI_DISABLE_NUMBA=1``)."""
     if stage not in _MODULES:
         raise ValueError(f"stage must be one of {sorted(_MODULES)}; got {stage!r}")
     if os.environ.get("TI_DISABLE_NUMBA", "") not in ("", "0"):

@@ -15,6 +15,7 @@ import math
 import time
 from typing import Any
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -118,11 +119,12 @@ class PointVisibility:
         jitter: With the fixed grid: each point's rays go to one point per cell at an offset of its own, different
             for every cell and quadrature point (:func:`grid_offsets`: a low-discrepancy sequence, deterministic),
             not to the cell midpoints. The points of a pair then sample the target at ``Q`` times as many places,
-            and the estimate has no bias from the grid: with midpoints, a thin blocker that hides (or misses) every midpoint hides
-            (or misses) the whole target from every point. In a closed box with a thin plate inside (rows sum to
-            1), the RMS of (row sum − 1) falls from 0.0040 to 0.0017 (``tests/formfactors/test_visibility.py``);
-            on the Cornell box see ``benchmarks/results/visibility.md``. A single pair can come out a little
-            worse (its points' rays no longer share one grid whose errors may happen to cancel).
+            and the estimate has no bias from the grid: with midpoints, a thin blocker that hides (or misses) every
+            midpoint hides (or misses) the whole target from every point. In a closed box with a thin plate inside
+            (rows sum to 1), the RMS of (row sum − 1) falls from 0.0040 to 0.0017
+            (``tests/formfactors/test_visibility.py``); on the Cornell box see ``benchmarks/results/visibility.md``.
+            A single pair can come out a little worse (its points' rays no longer share one grid whose errors may
+            happen to cancel).
     """
 
     def __init__(self, sc: Scene, n: int, caster: Any = None, *, tol: float | None = None,
@@ -187,6 +189,9 @@ class PointVisibility:
         out = torch.empty(P, Q, dtype=torch.float64)
         per = max(1, (1 << 19) // (Q * S))
         jitter = self.jitter and self.tol is None
+        kern = loops("visibility") if self.tol is None else None
+        if kern is not None:
+            return self._compiled_fractions(kern, xs, dom, tgt, n, jitter, per)
         if jitter:
             j = torch.arange(S)
             iu, iv = (j // n).double(), (j % n).double()  # facet_samples: u varies slowest
@@ -211,6 +216,31 @@ class PointVisibility:
             out[s : s + per] = torch.where(den > 0, num / den.clamp_min(1e-300), torch.ones_like(den))
         return out
 
+    def _compiled_fractions(self, kern: Any, xs: Tensor, dom: Tensor, tgt: Tensor, n: int, jitter: bool,
+                            per: int) -> Tensor:
+        """:meth:`_fractions` of the fixed grid through the compiled loops (:mod:`._numba_visibility`): rays and
+        weights in one pass, Embree, then the weighted fractions; no ``[c, Q, S, 3]`` temporaries in torch."""
+        P, Q, _ = xs.shape
+        S = n * n
+        out = torch.empty(P, Q, dtype=torch.float64)
+        eps = float(self.caster.eps)
+        for s in range(0, P, per):
+            a, b = dom[s : s + per], tgt[s : s + per]
+            c = a.numel()
+            seed = _seeds(a, b)
+            origin = np.empty((c * Q * S, 3), dtype=np.float32)
+            direction = np.empty((c * Q * S, 3), dtype=np.float32)
+            tfar = np.empty(c * Q * S, dtype=np.float32)
+            weight = np.empty((c, Q, S), dtype=np.float64)
+            args = [t.contiguous().numpy() for t in (xs[s : s + per].double(), self.normals[a].double(),
+                                                      self.corners[b].double(), self.normals[b].double())]
+            launch(kern.rays, args[0], args[1], args[2], args[3], n, seed.numpy(), jitter, _MARGIN, eps, _END_GAP,
+                   origin, direction, tfar, weight)
+            blocked = self.caster.occluded(origin, direction, tfar)
+            self.rays += c * Q * S
+            launch(kern.fractions, weight, blocked, out[s : s + per].numpy())
+        return out
+
     @staticmethod
     def _weights(x: Tensor, nx: Tensor, y: Tensor, ny: Tensor, area: Tensor) -> Tensor:
         """Point-to-point kernel ``cos θ_x cos θ_y / |x − y|²`` times the area of ``y``'s cell (no ``π``)."""
@@ -225,9 +255,10 @@ class PointVisibility:
         r = y - x
         length = (r * r).sum(-1).clamp_min(1e-30).sqrt()
         direction = r / length[..., None]
-        origin = x + self.caster.eps * direction
+        gap = self.caster.eps + _END_GAP * length  # see _END_GAP
+        origin = x + gap[..., None] * direction
         blocked = self.caster.occluded(origin.reshape(-1, 3).numpy(), direction.reshape(-1, 3).numpy(),
-                                       (length - 2 * self.caster.eps).reshape(-1).numpy())
+                                       (length - 2 * gap).reshape(-1).numpy())
         self.rays += int(length.numel())
         return torch.from_numpy(blocked).reshape(length.shape)
 
@@ -323,21 +354,31 @@ class PointVisibility:
 #: The R2 sequence's step (Roberts 2018): ``1/φ₂, 1/φ₂²`` with ``φ₂`` the plastic number; consecutive points fill the
 #: unit square with low discrepancy.
 _R2 = (0.7548776662466927, 0.5698402909980532)
+#: Visibility rays skip this share of their length (plus the caster's ``eps``) at each end. A ray that leaves its
+#: facet, or arrives at its target, at a grazing angle ``θ`` runs within ``gap · sin θ`` of that facet's plane, and
+#: float32 rays hit the facet (or its coplanar neighbour) when that is below the coordinates' rounding: on the
+#: Cornell box, rays arriving at 0.35° were found blocked or not by the last bit of their direction.
+_END_GAP = 1e-4
 #: Jittered samples keep this share of a cell from each of its sides (see :func:`grid_offsets`).
 _MARGIN = 0.1
 
 
+def _seeds(dom: Tensor, tgt: Tensor) -> Tensor:
+    """The per-pair rotation ``[P, 2]`` in ``[0, 1)`` of :func:`grid_offsets` (a hash of the two facet indices)."""
+    d, t = dom.to(torch.int64), tgt.to(torch.int64)
+    seed = torch.stack([(d * 2654435761 + t * 2246822519) % 1048573, (d * 3266489917 + t * 668265263) % 1048571], -1)
+    return seed.to(torch.float64) / 1048576.0
+
+
 def grid_offsets(dom: Tensor, tgt: Tensor, Q: int, S: int) -> Tensor:
-    """Offsets ``[P, Q, S, 2]`` in ``[0.1, 0.9)²`` of the visibility samples within their ``S`` grid cells, for the ``Q``
-    points of each pair ``(dom, tgt)`` ``[P]``: the R2 low-discrepancy sequence over (point, cell), rotated per pair
-    by a hash of its facets (Cranley–Patterson), so every cell of every point, and neighbouring pairs, sample
+    """Offsets ``[P, Q, S, 2]`` in ``[0.1, 0.9)²`` of the visibility samples within their ``S`` grid cells, for the
+    ``Q`` points of each pair ``(dom, tgt)`` ``[P]``: the R2 low-discrepancy sequence over (point, cell), rotated per
+    pair by a hash of its facets (Cranley–Patterson), so every cell of every point, and neighbouring pairs, sample
     different places (stratified, jittered sampling). Offsets stay ``_MARGIN`` (a tenth of a cell) from the cell's
     sides: a sample on the very edge of a target that touches the domain (a contact line) would cast a ray grazing
     the domain's own plane, which float32 rays can hit (measured: a 2e-6 loss on a wall standing on a floor with
     full-cell offsets, none with these). Deterministic: the same pair, point and cell always get the same offset."""
-    d, t = dom.to(torch.int64), tgt.to(torch.int64)
-    seed = torch.stack([(d * 2654435761 + t * 2246822519) % 1048573, (d * 3266489917 + t * 668265263) % 1048571], -1)
-    seed = seed.to(torch.float64) / 1048576.0  # [P, 2]
+    seed = _seeds(dom, tgt)
     k = torch.arange(1, Q * S + 1, dtype=torch.float64).reshape(1, Q, S, 1)
     xi = torch.frac(seed[:, None, None, :] + k * torch.tensor(_R2, dtype=torch.float64))
     return _MARGIN + (1 - 2 * _MARGIN) * xi

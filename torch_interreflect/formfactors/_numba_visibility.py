@@ -1,0 +1,105 @@
+"""Compiled CPU loops (numba) of the fixed-grid visibility estimate (internal; see
+:class:`.visibility.PointVisibility`): the rays from quadrature points to one point per target cell, with their
+kernel weights, and the weighted visible fraction once Embree has answered.
+
+The same maths as the torch path of :meth:`.visibility.PointVisibility._fractions` (offsets of
+:func:`.visibility.grid_offsets`, the bilinear map, the point-to-point kernel), in float64 where the torch path
+rounds to float32 (the rays themselves are float32 for Embree in both), so the two agree to float32 rounding.
+"""
+
+from __future__ import annotations
+
+import math
+
+from numba import njit, prange
+
+#: the R2 sequence's step (see :data:`.visibility._R2`)
+_G0 = 0.7548776662466927
+_G1 = 0.5698402909980532
+
+
+@njit(cache=True, parallel=True)
+def rays(xs, na, cb, nb, n, seed, jitter, margin, eps, end_gap, origin, direction, tfar, weight):
+    """For pair ``p``, point ``q``, cell ``s = iu·n + iv`` of an ``n × n`` grid on the target quad ``cb[p]``:
+    the ray from ``xs[p, q]`` to the cell's sample (offset ``margin + (1 − 2 margin)·frac(seed[p] + k·g)``,
+    ``k = q·n² + s + 1``, or its midpoint without ``jitter``), less ``eps + end_gap · length`` at each end, and its
+    weight ``cos θ_x cos θ_y / d² · area``.
+
+    xs ``[P, Q, 3]``; na, nb ``[P, 3]`` (domain / target normals); cb ``[P, 4, 3]``; seed ``[P, 2]``; outputs
+    origin, direction ``[P·Q·S, 3]`` (float32), tfar ``[P·Q·S]`` (float32), weight ``[P, Q, S]`` (float64).
+    """
+    P, Q = xs.shape[0], xs.shape[1]
+    S = n * n
+    for p in prange(P):
+        c = cb[p]
+        for q in range(Q):
+            x0, x1, x2 = xs[p, q, 0], xs[p, q, 1], xs[p, q, 2]
+            for s in range(S):
+                iu = s // n
+                iv = s - iu * n
+                if jitter:
+                    k = q * S + s + 1
+                    a = seed[p, 0] + k * _G0
+                    b = seed[p, 1] + k * _G1
+                    xu = margin + (1.0 - 2.0 * margin) * (a - math.floor(a))
+                    xv = margin + (1.0 - 2.0 * margin) * (b - math.floor(b))
+                else:
+                    xu = 0.5
+                    xv = 0.5
+                u = (iu + xu) / n
+                v = (iv + xv) / n
+                w0 = (1 - u) * (1 - v)
+                w1 = u * (1 - v)
+                w2 = u * v
+                w3 = (1 - u) * v
+                y0 = w0 * c[0, 0] + w1 * c[1, 0] + w2 * c[2, 0] + w3 * c[3, 0]
+                y1 = w0 * c[0, 1] + w1 * c[1, 1] + w2 * c[2, 1] + w3 * c[3, 1]
+                y2 = w0 * c[0, 2] + w1 * c[1, 2] + w2 * c[2, 2] + w3 * c[3, 2]
+                du0 = (1 - v) * (c[1, 0] - c[0, 0]) + v * (c[2, 0] - c[3, 0])
+                du1 = (1 - v) * (c[1, 1] - c[0, 1]) + v * (c[2, 1] - c[3, 1])
+                du2 = (1 - v) * (c[1, 2] - c[0, 2]) + v * (c[2, 2] - c[3, 2])
+                dv0 = (1 - u) * (c[3, 0] - c[0, 0]) + u * (c[2, 0] - c[1, 0])
+                dv1 = (1 - u) * (c[3, 1] - c[0, 1]) + u * (c[2, 1] - c[1, 1])
+                dv2 = (1 - u) * (c[3, 2] - c[0, 2]) + u * (c[2, 2] - c[1, 2])
+                j0 = du1 * dv2 - du2 * dv1
+                j1 = du2 * dv0 - du0 * dv2
+                j2 = du0 * dv1 - du1 * dv0
+                area = math.sqrt(j0 * j0 + j1 * j1 + j2 * j2) / S
+                r0 = y0 - x0
+                r1 = y1 - x1
+                r2 = y2 - x2
+                d2 = max(r0 * r0 + r1 * r1 + r2 * r2, 1e-30)
+                ca = max(r0 * na[p, 0] + r1 * na[p, 1] + r2 * na[p, 2], 0.0)
+                cbk = max(-(r0 * nb[p, 0] + r1 * nb[p, 1] + r2 * nb[p, 2]), 0.0)
+                weight[p, q, s] = ca * cbk / (d2 * d2) * area
+                length = math.sqrt(d2)
+                e0 = r0 / length
+                e1 = r1 / length
+                e2 = r2 / length
+                i = (p * Q + q) * S + s
+                gap = eps + end_gap * length
+                origin[i, 0] = x0 + gap * e0
+                origin[i, 1] = x1 + gap * e1
+                origin[i, 2] = x2 + gap * e2
+                direction[i, 0] = e0
+                direction[i, 1] = e1
+                direction[i, 2] = e2
+                tfar[i] = length - 2 * gap
+
+
+@njit(cache=True, parallel=True)
+def fractions(weight, blocked, out):
+    """``out[p, q] = Σ_s weight·(not blocked) / Σ_s weight`` (1 where the weights sum to 0); blocked is flat
+    ``[P·Q·S]`` in the order of :func:`rays`."""
+    P, Q, S = weight.shape
+    for p in prange(P):
+        for q in range(Q):
+            num = 0.0
+            den = 0.0
+            base = (p * Q + q) * S
+            for s in range(S):
+                w = weight[p, q, s]
+                den += w
+                if not blocked[base + s]:
+                    num += w
+            out[p, q] = num / den if den > 0 else 1.0
