@@ -42,6 +42,7 @@ from torch import Tensor
 from ._deprecation import renamed_keywords
 from .errors import ShapeError, ValueRangeError
 from .formfactors.operator import FormFactorOperator
+from .formfactors.visibility import hemisphere_fractions
 from .geometry.scene import Scene
 
 __all__ = ["back_coverage", "directional", "light_geometry", "lit_fraction", "sky", "uniform"]
@@ -184,9 +185,10 @@ def sky(
         spd: Sky radiance, W·sr⁻¹·m⁻²·nm⁻¹, shape ``[..., L]``.
         backfaces: ``"auto"`` estimates ``b_i`` only for facets that have another facet's back in front of
             them (found in row blocks, no ``[F, F]`` matrix); ``True`` for every facet; ``False`` never (``b = 0``).
-        sky_samples: Jittered stratified cosine-weighted directions per axis (``sky_samples²`` per point, 8 × 8
-            points per facet) for the ray-cast parts (``b``, and the open part of facets with occluded pairs;
-            formerly ``samples``).
+        sky_samples: Stratified cosine-weighted directions per axis (``sky_samples²`` per point, 8 × 8 points per
+            facet, both with low-discrepancy offsets:
+            :func:`~torch_interreflect.formfactors.visibility.hemisphere_fractions`) for the ray-cast parts (``b``,
+            and the open part of facets with occluded pairs; formerly ``samples``).
 
     Shape:
         - output: ``[..., F, L]``
@@ -216,11 +218,15 @@ def sky(
         approx = form_factors.info.get("occluded_facets")
         approx = approx.cpu() if approx is not None else torch.zeros(F, dtype=torch.bool)
         maybe_back = facing_any(scene, one_way=True) if backfaces == "auto" else torch.ones(F, dtype=torch.bool)
-        idx = torch.nonzero(approx | maybe_back).reshape(-1)
+        open_part = open_part.clone()
+        sc = _detached_cpu(scene)
+        idx = torch.nonzero(approx).reshape(-1)
         if idx.numel():
-            escape, back = _hemisphere_fractions(_detached_cpu(scene), idx, samples=sky_samples, points=8)
-            open_part = open_part.clone()
-            open_part[idx] = torch.where(approx[idx], escape, open_part[idx] - back)
+            open_part[idx] = hemisphere_fractions(sc, idx, samples=sky_samples, points=8, back=False)[0]
+        idx = torch.nonzero(maybe_back & ~approx).reshape(-1)
+        if idx.numel():
+            open_part[idx] = open_part[idx] - hemisphere_fractions(sc, idx, samples=sky_samples, points=8,
+                                                                   escape=False)[1]
     open_part = open_part.clamp_min(0).to(spd.dtype).to(spd.device)
     return math.pi * open_part[:, None] * spd[..., None, :]
 
@@ -231,7 +237,7 @@ def back_coverage(
 ) -> Tensor:
     """Fraction of each facet's cosine-weighted hemisphere that sees the back side of some facet.
 
-    Estimated with stratified cosine-weighted rays (``sky_samples²`` directions from each of ``points²`` midpoint
+    Estimated with stratified cosine-weighted rays (``sky_samples²`` directions from each of ``points²`` jittered
     points per facet), first hits only, so occlusion is included.
 
     Args:
@@ -252,55 +258,8 @@ def back_coverage(
     idx = torch.nonzero(facing_any(scene, one_way=True)).reshape(-1) if only_where_possible else torch.arange(F)
     if idx.numel() == 0:
         return b
-    b[idx] = _hemisphere_fractions(sc, idx, samples=sky_samples, points=points)[1]
+    b[idx] = hemisphere_fractions(sc, idx, samples=sky_samples, points=points, escape=False)[1]
     return b
-
-
-def _hemisphere_fractions(sc: Scene, idx: Tensor, *, samples: int, points: int) -> tuple[Tensor, Tensor]:
-    """Cosine-weighted fractions of the hemispheres of facets ``idx`` that escape the scene / hit a back face.
-
-    Jittered stratified cosine-weighted directions (``samples²``) from ``points²`` jittered points per facet,
-    area weighted. ``sc`` is a float64 CPU scene. Returns two float64 tensors ``[len(idx)]``.
-    """
-    from .geometry._polygon import bilinear, tangent_frame
-    from .geometry.raycast import RayCaster
-
-    n = int(samples)
-    # jittered stratification of the unit square, drawn afresh for every point (fixed seed: reproducible). One
-    # pattern shared by all points would integrate the hemisphere with the same n² directions everywhere: its
-    # error (a few % of a window's solid angle on the Cornell box) would then be a bias, not noise that
-    # averages out over the points and facets.
-    gen = torch.Generator().manual_seed(0)
-    cells = torch.arange(n, dtype=torch.float64)
-    cu, cv = cells.repeat_interleave(n), cells.repeat(n)  # [D]
-    normals = sc.normals[idx]
-    t1, t2 = tangent_frame(normals)
-    q = (torch.arange(points, dtype=torch.float64) + 0.5) / points
-    qu = q.repeat_interleave(points) + (torch.rand(points * points, dtype=torch.float64, generator=gen) - 0.5) / points
-    qv = q.repeat(points) + (torch.rand(points * points, dtype=torch.float64, generator=gen) - 0.5) / points
-    caster = RayCaster(sc)
-    escape = torch.empty(idx.numel(), dtype=torch.float64)
-    back = torch.empty(idx.numel(), dtype=torch.float64)
-    per = max(1, (1 << 20) // (points * points * n * n))  # about a million rays at a time
-    for s in range(0, idx.numel(), per):
-        sl = slice(s, s + per)
-        pts, jac = bilinear(sc.corners[idx[sl]], qu, qv)  # [k, P, 3]
-        k, P = pts.shape[:2]
-        r1 = (cu + torch.rand(k, P, n * n, dtype=torch.float64, generator=gen)) / n
-        r2 = (cv + torch.rand(k, P, n * n, dtype=torch.float64, generator=gen)) / n
-        rad, ang = r1.sqrt(), 2 * math.pi * r2  # → cosine-weighted hemisphere
-        lx, ly, lz = rad * ang.cos(), rad * ang.sin(), (1 - r1).clamp_min(0).sqrt()  # [k, P, D]
-        d = (lx[..., None] * t1[sl, None, None] + ly[..., None] * t2[sl, None, None]
-             + lz[..., None] * normals[sl, None, None])  # [k, P, D, 3]
-        # start a hair above the facet: a ray that grazes it must not hit a coplanar neighbour's edge
-        o = (pts + caster.eps * normals[sl, None, :])[:, :, None, :].expand_as(d)
-        hit = torch.from_numpy(caster.first_hit(o.reshape(-1, 3).numpy(), d.reshape(-1, 3).numpy()))
-        hit = hit.reshape(d.shape[:-1])
-        is_back = (hit >= 0) & ((d * sc.normals[hit.clamp_min(0)]).sum(-1) > 0)
-        w = jac / jac.sum(1, keepdim=True)
-        escape[sl] = ((hit < 0).to(torch.float64).mean(-1) * w).sum(1)
-        back[sl] = (is_back.to(torch.float64).mean(-1) * w).sum(1)
-    return escape, back
 
 
 def uniform(scene: Scene, spd: Tensor) -> Tensor:

@@ -16,6 +16,9 @@ from numba import njit, prange
 #: the R2 sequence's step (see :data:`.visibility._R2`)
 _G0 = 0.7548776662466927
 _G1 = 0.5698402909980532
+#: steps of a second Kronecker sequence (√2 − 1, √3 − 1)
+_H0 = 0.41421356237309515
+_H1 = 0.7320508075688772
 
 
 @njit(cache=True, parallel=True)
@@ -103,3 +106,85 @@ def fractions(weight, blocked, out):
                 if not blocked[base + s]:
                     num += w
             out[p, q] = num / den if den > 0 else 1.0
+
+
+@njit(cache=True, parallel=True)
+def hemisphere_rays(corners, normals, t1, t2, points, n, seed, eps, origin, direction, area):
+    """Rays over the cosine-weighted hemispheres of facets ``[K]``: ``points × points`` points per facet (one per
+    cell of the unit square, jittered by the R2 sequence rotated by ``seed[f]``), and from each point ``n × n``
+    directions, one per cell of the cosine-weighted square (rotated per point by the R2 sequence), starting
+    ``eps`` above the facet. ``area[f, p]``: the point's share of the facet's area (bilinear Jacobian).
+
+    corners ``[K, 4, 3]`` (relative to the caster's origin), normals/t1/t2 ``[K, 3]``, seed ``[K, 2]``; outputs
+    origin, direction ``[K·P·D, 3]`` (float32, ``P = points²``, ``D = n²``), area ``[K, P]``.
+    """
+    K = corners.shape[0]
+    P = points * points
+    D = n * n
+    for f in prange(K):
+        c = corners[f]
+        total = 0.0
+        for p in range(P):
+            a = seed[f, 0] + (p + 1) * _G0
+            b = seed[f, 1] + (p + 1) * _G1
+            u = (p // points + (a - math.floor(a))) / points
+            v = (p % points + (b - math.floor(b))) / points
+            w0 = (1 - u) * (1 - v)
+            w1 = u * (1 - v)
+            w2 = u * v
+            w3 = (1 - u) * v
+            du0 = (1 - v) * (c[1, 0] - c[0, 0]) + v * (c[2, 0] - c[3, 0])
+            du1 = (1 - v) * (c[1, 1] - c[0, 1]) + v * (c[2, 1] - c[3, 1])
+            du2 = (1 - v) * (c[1, 2] - c[0, 2]) + v * (c[2, 2] - c[3, 2])
+            dv0 = (1 - u) * (c[3, 0] - c[0, 0]) + u * (c[2, 0] - c[1, 0])
+            dv1 = (1 - u) * (c[3, 1] - c[0, 1]) + u * (c[2, 1] - c[1, 1])
+            dv2 = (1 - u) * (c[3, 2] - c[0, 2]) + u * (c[2, 2] - c[1, 2])
+            j0 = du1 * dv2 - du2 * dv1
+            j1 = du2 * dv0 - du0 * dv2
+            j2 = du0 * dv1 - du1 * dv0
+            jac = math.sqrt(j0 * j0 + j1 * j1 + j2 * j2)
+            area[f, p] = jac
+            total += jac
+            x0 = w0 * c[0, 0] + w1 * c[1, 0] + w2 * c[2, 0] + w3 * c[3, 0] + eps * normals[f, 0]
+            x1 = w0 * c[0, 1] + w1 * c[1, 1] + w2 * c[2, 1] + w3 * c[3, 1] + eps * normals[f, 1]
+            x2 = w0 * c[0, 2] + w1 * c[1, 2] + w2 * c[2, 2] + w3 * c[3, 2] + eps * normals[f, 2]
+            # the direction grid's rotation for this point: a Kronecker sequence of other steps (√2 − 1, √3 − 1),
+            # so that it does not follow the point's offset within its cell
+            ra = seed[f, 1] + (p + 1) * _H0
+            rb = seed[f, 0] + (p + 1) * _H1
+            ou = ra - math.floor(ra)
+            ov = rb - math.floor(rb)
+            for d in range(D):
+                s1 = (d // n + ou) / n
+                s2 = (d % n + ov) / n
+                rad = math.sqrt(s1)
+                ang = 2.0 * math.pi * s2
+                lx = rad * math.cos(ang)
+                ly = rad * math.sin(ang)
+                lz = math.sqrt(max(1.0 - s1, 0.0))
+                i = (f * P + p) * D + d
+                origin[i, 0] = x0
+                origin[i, 1] = x1
+                origin[i, 2] = x2
+                direction[i, 0] = lx * t1[f, 0] + ly * t2[f, 0] + lz * normals[f, 0]
+                direction[i, 1] = lx * t1[f, 1] + ly * t2[f, 1] + lz * normals[f, 1]
+                direction[i, 2] = lx * t1[f, 2] + ly * t2[f, 2] + lz * normals[f, 2]
+        for p in range(P):
+            area[f, p] = area[f, p] / total if total > 0 else 1.0 / P
+
+
+@njit(cache=True, parallel=True)
+def hemisphere_sums(area, hit, n_dirs, out):
+    """``out[f] = Σ_p area[f, p] · mean_d hit[(f·P + p)·D + d]`` (hit: bool flat, in :func:`hemisphere_rays`'s
+    order)."""
+    K, P = area.shape
+    for f in prange(K):
+        acc = 0.0
+        for p in range(P):
+            base = (f * P + p) * n_dirs
+            m = 0
+            for d in range(n_dirs):
+                if hit[base + d]:
+                    m += 1
+            acc += area[f, p] * m / n_dirs
+        out[f] = acc

@@ -114,6 +114,21 @@ class RayCaster:
         res = _run_split(self._occluded_raw, len(o), o, d, np.maximum(t, 0))
         return (res != -1) & (t > 0)
 
+    def hit_facets(self, origins: np.ndarray, directions: np.ndarray) -> np.ndarray:
+        """Raw first-hit query: the facet each ray hits first (``-1`` when it escapes).
+
+        Args:
+            origins: Ray origins relative to :attr:`origin`, float32 ``[N, 3]`` (already offset off their facet).
+            directions: Unit directions, float32 ``[N, 3]``.
+
+        Returns:
+            Facet indices ``[N]`` (int64).
+        """
+        o = np.ascontiguousarray(origins, dtype=np.float32)
+        d = np.ascontiguousarray(directions, dtype=np.float32)
+        tri = _run_split(self._hit_raw, len(o), o, d)
+        return np.where(tri >= 0, self._owner[np.maximum(tri, 0)], -1)
+
     def _occluded_raw(self, o: np.ndarray, d: np.ndarray, t: np.ndarray) -> np.ndarray:
         return self._scene.run(np.ascontiguousarray(o), np.ascontiguousarray(d), dists=np.ascontiguousarray(t),
                                query="OCCLUDED")
