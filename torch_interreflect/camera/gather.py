@@ -27,12 +27,13 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
+from .._sparse import sparse_matrix
 from ..errors import ShapeError
 from ..geometry.raycast import RayCaster
 from ..geometry.scene import Scene
 from ..solver.api import solve
 from .fragments import coarse_points, primary_fragments
-from .point_kernel import point_form_factors, sparse_matrix
+from .point_kernel import point_form_factors
 from .sensor import Camera
 from .view import View
 

@@ -8,12 +8,12 @@ stratified Embree rays, cast only for facet pairs a third facet could block. Use
 from __future__ import annotations
 
 import time
-import warnings
 from typing import Any
 
 import torch
 from torch import Tensor
 
+from .._sparse import sparse_matrix
 from ..errors import ShapeError
 from ..formfactors.fused import point_sums
 from ..formfactors.visibility import blocker_candidates
@@ -21,23 +21,10 @@ from ..geometry._polygon import bilinear, clip_polygons, facing_others, plane_ep
 from ..geometry.raycast import RayCaster
 from ..geometry.scene import Scene
 
-__all__ = ["PAIR_CHUNK", "point_form_factors", "sparse_matrix"]
+__all__ = ["PAIR_CHUNK", "point_form_factors"]
 
 #: Largest number of (point, facet) pairs whose visibility rays are set up at once (memory ~ 1 kB per pair).
 PAIR_CHUNK = 1 << 16
-
-
-def sparse_matrix(rows: Tensor, cols: Tensor, vals: Tensor, shape: tuple[int, int], dtype: torch.dtype | None,
-            ordered: bool = False) -> Tensor:
-    """COO (coalesced, float64 sums) → CSR in ``dtype``; ``dtype=None`` keeps the coalesced COO.
-
-    ``ordered``: the ``(row, col)`` pairs are already unique and sorted row-major (no sort needed).
-    """
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", UserWarning)  # "sparse CSR support is in beta"
-        coo = torch.sparse_coo_tensor(torch.stack([rows, cols]), vals, shape, is_coalesced=ordered)
-        coo = coo if ordered else coo.coalesce()
-        return coo if dtype is None else coo.to_sparse_csr().to(dtype)
 
 
 

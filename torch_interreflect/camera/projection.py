@@ -16,7 +16,6 @@ centre ``((W − 1)/2, (H − 1)/2)`` and uses a vertical field of view.
 from __future__ import annotations
 
 import math
-import warnings
 from collections.abc import Sequence
 
 import numpy as np
@@ -24,6 +23,7 @@ import torch
 from kornia.geometry.camera import PinholeCamera
 from torch import Tensor, nn
 
+from .._sparse import sparse_matrix
 from ..errors import ShapeError, ValueRangeError
 from ..geometry.scene import Scene
 
@@ -363,12 +363,10 @@ def project(
     rows = (torch.arange(h * s)[:, None] // s * w + torch.arange(w * s)[None, :] // s).reshape(-1)
     n_f = scene.num_facets
     idx = torch.stack([rows[front], hit[front]])
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", UserWarning)  # "sparse CSR support is in beta"
-        # integer counts first (exact sums), then one division: a fully covered pixel has coverage exactly 1
-        coo = torch.sparse_coo_tensor(idx, torch.ones(idx.shape[1], dtype=torch.float64), (h * w, n_f)).coalesce()
-        coo = torch.sparse_coo_tensor(coo.indices(), coo.values() / (s * s), coo.shape).coalesce()
-        coverage = coo.to_sparse_csr().to(scene.dtype)
+    # integer counts first (exact sums), then one division: a fully covered pixel has coverage exactly 1
+    coo = sparse_matrix(idx[0], idx[1], torch.ones(idx.shape[1], dtype=torch.float64), (h * w, n_f), None)
+    ci = coo.indices()
+    coverage = sparse_matrix(ci[0], ci[1], coo.values() / (s * s), coo.shape, scene.dtype, ordered=True)
     background = torch.bincount(rows[~ok], minlength=h * w).to(torch.float64) / (s * s)
     # dominant facet per pixel (for masks and debugging)
     dense_counts = torch.zeros(h * w, n_f + 1, dtype=torch.int32)

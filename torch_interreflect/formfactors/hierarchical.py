@@ -44,6 +44,7 @@ import torch
 from torch import Tensor
 from tqdm.auto import tqdm
 
+from .._sparse import sparse_matrix
 from ..errors import ValueRangeError
 from ..geometry._polygon import plane_eps
 from ..geometry.raycast import RayCaster
@@ -241,7 +242,7 @@ def _near_field(sc: Scene, tree: ClusterTree, na: np.ndarray, nb: np.ndarray, oc
     info.update(near_pairs=n_pairs_total, near_nnz=int(vals.numel()), near_leaf_pairs=int(na.size),
                 near_points=qinfo.get("points", 0), near_rays=vis.rays if vis is not None else 0,
                 seconds_near_visibility=qinfo.get("seconds_visibility", 0.0), occluded_facets=occluded)
-    return torch.sparse_coo_tensor(torch.stack([rows, cols]), vals, (F, F)).coalesce().to_sparse_csr()
+    return sparse_matrix(rows, cols, vals, (F, F), vals.dtype)
 
 
 def _levels(tree: ClusterTree) -> list[Tensor]:

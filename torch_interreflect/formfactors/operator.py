@@ -9,13 +9,13 @@ container also holds the facet areas (for reciprocity ``A_i F_ij = A_j F_ji`` an
 from __future__ import annotations
 
 import math
-import warnings
 from dataclasses import dataclass, field
 from typing import Any, Protocol, runtime_checkable
 
 import torch
 from torch import Tensor
 
+from .._sparse import to_csr
 from ..errors import ShapeError, ValueRangeError
 
 __all__ = ["FormFactorOperator", "FormFactors"]
@@ -178,9 +178,7 @@ class FormFactors:
             max_row_mass=float(max_row_mass),
         )
         info.pop("_solve_plan", None)
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", UserWarning)  # "sparse CSR support is in beta"
-            csr = mat.to_sparse_csr()
+        csr = to_csr(mat)
         return FormFactors(csr, self.areas.detach(), info)
 
     def row_sums(self) -> Tensor:

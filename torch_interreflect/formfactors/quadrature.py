@@ -25,6 +25,7 @@ from torch import Tensor
 from tqdm.auto import tqdm
 
 from .._deprecation import renamed_keywords
+from .._sparse import sparse_matrix
 from ..errors import ValueRangeError
 from ..geometry._polygon import (
     clip_polygons,
@@ -271,8 +272,7 @@ def assemble(rows: Tensor, cols: Tensor, vals: Tensor, F: int, layout: str, dtyp
         mat = torch.zeros(F, F, dtype=torch.float64, device=vals.device)
         mat[rows, cols] = vals
         return mat.to(dtype), layout
-    matrix = torch.sparse_coo_tensor(torch.stack([rows, cols]), vals, (F, F)).coalesce()
-    return matrix.to(dtype).to_sparse_csr(), layout
+    return sparse_matrix(rows, cols, vals, (F, F), dtype), layout
 
 
 def pair_values(

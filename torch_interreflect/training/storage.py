@@ -17,7 +17,6 @@ import json
 import os
 import re
 import time
-import warnings
 import zipfile
 from collections.abc import Callable, Iterable, Mapping
 from pathlib import Path
@@ -26,6 +25,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from .._sparse import sparse_matrix
 from ..formfactors.operator import FormFactors
 from .config import variant_suffix
 from .sample import Sample
@@ -228,10 +228,8 @@ def load_geometry(
     mat[idx[0], idx[1]] = torch.from_numpy(np.asarray(z["ff_values"])).to(dtype)
     bg = torch.from_numpy(np.asarray(z["background"])).to(dtype)
     ci = torch.from_numpy(np.asarray(z["coverage_indices"]).astype(np.int64))
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", UserWarning)
-        cov = torch.sparse_coo_tensor(ci, torch.from_numpy(np.asarray(z["coverage_values"])).to(dtype),
-                                      (bg.numel(), n)).coalesce().to_sparse_csr()
+    cov = sparse_matrix(ci[0], ci[1], torch.from_numpy(np.asarray(z["coverage_values"])).to(dtype), (bg.numel(), n),
+                        dtype)
     out: dict[str, Any] = {
         "form_factors": FormFactors(mat, areas),
         "light_factor": torch.from_numpy(np.asarray(z["light_factor"])).to(dtype),
