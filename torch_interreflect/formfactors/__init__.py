@@ -2,8 +2,11 @@
 
 - :mod:`.operator`: :class:`FormFactors` (dense or CSR) and the :class:`FormFactorOperator` protocol.
 - :mod:`.quadrature`: :func:`form_factors` (Lambert's contour formula, adaptive Gauss quadrature).
+- :mod:`.pairs`: culling and classification of facet pairs; :mod:`.fused`: the quadrature's compiled loops and
+  their adjoints; :mod:`.compiled`: loading and launching the numba loops (``_numba_*`` modules).
 - :mod:`.contour`: :func:`point_polygon_factor`; :mod:`.rules`: quadrature rules and orders.
-- :mod:`.visibility`: occlusion by Embree rays; :mod:`.montecarlo`: the paper's estimator.
+- :mod:`.visibility`: occlusion by Embree rays (jittered per-point samples, hemisphere fractions for the sky);
+  :mod:`.montecarlo`: the paper's estimator.
 - :mod:`.hierarchical`: :func:`hierarchical_form_factors` for large scenes (the builder), with
   :mod:`.hierarchical_operator` (:class:`HierarchicalFormFactors`), :mod:`.cluster_tree` (cluster tree and
   traversal) and :mod:`.cluster_visibility` (visible fraction of far blocks).

@@ -14,6 +14,8 @@ import math
 import numpy as np
 from numba import njit, prange
 
+from ._numba_geometry import bilinear_map, jacobian_norm
+
 _INV_2PI = 1.0 / (2.0 * math.pi)
 _TINY = float(np.finfo(np.float64).tiny ** 0.5)
 #: most corners of a clipped target kept (as the torch path: ``clip_polygons(...)[:, :5]``)
@@ -108,34 +110,12 @@ def _contour(x0, x1, x2, n0, n1, n2, poly, count):
 
 
 @njit(cache=True, inline="always")
-def _bilinear(dom, uu, vv):
-    """The point ``x(u, v)`` of the bilinear map of the quad ``dom [4, 3]`` and its tangents ``∂x/∂u``, ``∂x/∂v``."""
-    a = (1 - uu) * (1 - vv)
-    b = uu * (1 - vv)
-    c = uu * vv
-    e = (1 - uu) * vv
-    x0 = a * dom[0, 0] + b * dom[1, 0] + c * dom[2, 0] + e * dom[3, 0]
-    x1 = a * dom[0, 1] + b * dom[1, 1] + c * dom[2, 1] + e * dom[3, 1]
-    x2 = a * dom[0, 2] + b * dom[1, 2] + c * dom[2, 2] + e * dom[3, 2]
-    du0 = (1 - vv) * (dom[1, 0] - dom[0, 0]) + vv * (dom[2, 0] - dom[3, 0])
-    du1 = (1 - vv) * (dom[1, 1] - dom[0, 1]) + vv * (dom[2, 1] - dom[3, 1])
-    du2 = (1 - vv) * (dom[1, 2] - dom[0, 2]) + vv * (dom[2, 2] - dom[3, 2])
-    dv0 = (1 - uu) * (dom[3, 0] - dom[0, 0]) + uu * (dom[2, 0] - dom[1, 0])
-    dv1 = (1 - uu) * (dom[3, 1] - dom[0, 1]) + uu * (dom[2, 1] - dom[1, 1])
-    dv2 = (1 - uu) * (dom[3, 2] - dom[0, 2]) + uu * (dom[2, 2] - dom[1, 2])
-    return x0, x1, x2, du0, du1, du2, dv0, dv1, dv2
-
-
-@njit(cache=True, inline="always")
 def _quad_sum(dom, n0, n1, n2, poly, count, u, v, w, vis, vrow):
     """``Σ_q F(x_q → poly) |J_q| w_q vis_q`` over the rule ``(u, v, w)`` mapped bilinearly onto ``dom [4, 3]``."""
     total = 0.0
     for q in range(u.shape[0]):
-        x0, x1, x2, du0, du1, du2, dv0, dv1, dv2 = _bilinear(dom, u[q], v[q])
-        j0 = du1 * dv2 - du2 * dv1
-        j1 = du2 * dv0 - du0 * dv2
-        j2 = du0 * dv1 - du1 * dv0
-        jac = math.sqrt(j0 * j0 + j1 * j1 + j2 * j2)
+        x0, x1, x2, du0, du1, du2, dv0, dv1, dv2 = bilinear_map(dom, u[q], v[q])
+        jac = jacobian_norm(du0, du1, du2, dv0, dv1, dv2)
         f = _contour(x0, x1, x2, n0, n1, n2, poly, count)
         if vrow >= 0:
             f *= vis[vrow, q]
@@ -277,7 +257,7 @@ def polygon_sums_grad(domain, normal, target, count, u, v, w, vis, vrow, gout, g
             b = uu * (1 - vv)
             c = uu * vv
             ee = (1 - uu) * vv
-            x0, x1, x2, du0, du1, du2, dv0, dv1, dv2 = _bilinear(dom, uu, vv)
+            x0, x1, x2, du0, du1, du2, dv0, dv1, dv2 = bilinear_map(dom, uu, vv)
             j0 = du1 * dv2 - du2 * dv1
             j1 = du2 * dv0 - du0 * dv2
             j2 = du0 * dv1 - du1 * dv0
@@ -343,7 +323,7 @@ def quad_points(quads, u, v, out):
     :func:`..geometry._polygon.bilinear`, without the Jacobian)."""
     for p in prange(quads.shape[0]):
         for q in range(u.shape[0]):
-            x0, x1, x2, _, _, _, _, _, _ = _bilinear(quads[p], u[q], v[q])
+            x0, x1, x2, _, _, _, _, _, _ = bilinear_map(quads[p], u[q], v[q])
             out[p, q, 0] = x0
             out[p, q, 1] = x1
             out[p, q, 2] = x2

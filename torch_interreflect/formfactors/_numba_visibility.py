@@ -13,6 +13,8 @@ import math
 
 from numba import njit, prange
 
+from ._numba_geometry import bilinear_map, jacobian_norm
+
 #: the R2 sequence's step (see :data:`.visibility._R2`)
 _G0 = 0.7548776662466927
 _G1 = 0.5698402909980532
@@ -49,25 +51,8 @@ def rays(xs, na, cb, nb, n, seed, jitter, margin, eps, end_gap, origin, directio
                 else:
                     xu = 0.5
                     xv = 0.5
-                u = (iu + xu) / n
-                v = (iv + xv) / n
-                w0 = (1 - u) * (1 - v)
-                w1 = u * (1 - v)
-                w2 = u * v
-                w3 = (1 - u) * v
-                y0 = w0 * c[0, 0] + w1 * c[1, 0] + w2 * c[2, 0] + w3 * c[3, 0]
-                y1 = w0 * c[0, 1] + w1 * c[1, 1] + w2 * c[2, 1] + w3 * c[3, 1]
-                y2 = w0 * c[0, 2] + w1 * c[1, 2] + w2 * c[2, 2] + w3 * c[3, 2]
-                du0 = (1 - v) * (c[1, 0] - c[0, 0]) + v * (c[2, 0] - c[3, 0])
-                du1 = (1 - v) * (c[1, 1] - c[0, 1]) + v * (c[2, 1] - c[3, 1])
-                du2 = (1 - v) * (c[1, 2] - c[0, 2]) + v * (c[2, 2] - c[3, 2])
-                dv0 = (1 - u) * (c[3, 0] - c[0, 0]) + u * (c[2, 0] - c[1, 0])
-                dv1 = (1 - u) * (c[3, 1] - c[0, 1]) + u * (c[2, 1] - c[1, 1])
-                dv2 = (1 - u) * (c[3, 2] - c[0, 2]) + u * (c[2, 2] - c[1, 2])
-                j0 = du1 * dv2 - du2 * dv1
-                j1 = du2 * dv0 - du0 * dv2
-                j2 = du0 * dv1 - du1 * dv0
-                area = math.sqrt(j0 * j0 + j1 * j1 + j2 * j2) / S
+                y0, y1, y2, du0, du1, du2, dv0, dv1, dv2 = bilinear_map(c, (iu + xu) / n, (iv + xv) / n)
+                area = jacobian_norm(du0, du1, du2, dv0, dv1, dv2) / S
                 r0 = y0 - x0
                 r1 = y1 - x1
                 r2 = y2 - x2
@@ -127,27 +112,14 @@ def hemisphere_rays(corners, normals, t1, t2, points, n, seed, eps, origin, dire
         for p in range(P):
             a = seed[f, 0] + (p + 1) * _G0
             b = seed[f, 1] + (p + 1) * _G1
-            u = (p // points + (a - math.floor(a))) / points
-            v = (p % points + (b - math.floor(b))) / points
-            w0 = (1 - u) * (1 - v)
-            w1 = u * (1 - v)
-            w2 = u * v
-            w3 = (1 - u) * v
-            du0 = (1 - v) * (c[1, 0] - c[0, 0]) + v * (c[2, 0] - c[3, 0])
-            du1 = (1 - v) * (c[1, 1] - c[0, 1]) + v * (c[2, 1] - c[3, 1])
-            du2 = (1 - v) * (c[1, 2] - c[0, 2]) + v * (c[2, 2] - c[3, 2])
-            dv0 = (1 - u) * (c[3, 0] - c[0, 0]) + u * (c[2, 0] - c[1, 0])
-            dv1 = (1 - u) * (c[3, 1] - c[0, 1]) + u * (c[2, 1] - c[1, 1])
-            dv2 = (1 - u) * (c[3, 2] - c[0, 2]) + u * (c[2, 2] - c[1, 2])
-            j0 = du1 * dv2 - du2 * dv1
-            j1 = du2 * dv0 - du0 * dv2
-            j2 = du0 * dv1 - du1 * dv0
-            jac = math.sqrt(j0 * j0 + j1 * j1 + j2 * j2)
+            y0, y1, y2, du0, du1, du2, dv0, dv1, dv2 = bilinear_map(
+                c, (p // points + (a - math.floor(a))) / points, (p % points + (b - math.floor(b))) / points)
+            jac = jacobian_norm(du0, du1, du2, dv0, dv1, dv2)
             area[f, p] = jac
             total += jac
-            x0 = w0 * c[0, 0] + w1 * c[1, 0] + w2 * c[2, 0] + w3 * c[3, 0] + eps * normals[f, 0]
-            x1 = w0 * c[0, 1] + w1 * c[1, 1] + w2 * c[2, 1] + w3 * c[3, 1] + eps * normals[f, 1]
-            x2 = w0 * c[0, 2] + w1 * c[1, 2] + w2 * c[2, 2] + w3 * c[3, 2] + eps * normals[f, 2]
+            x0 = y0 + eps * normals[f, 0]
+            x1 = y1 + eps * normals[f, 1]
+            x2 = y2 + eps * normals[f, 2]
             # the direction grid's rotation for this point: a Kronecker sequence of other steps (√2 − 1, √3 − 1),
             # so that it does not follow the point's offset within its cell
             ra = seed[f, 1] + (p + 1) * _H0
