@@ -79,8 +79,6 @@ class PairClasses:
     n_adj: int  # Gauss order of the graded rules
 
 
-
-
 def classify_pairs(sc: Scene, dom: Tensor, tgt: Tensor, tol: float, adjacent_order: int | None,
                    eps: float) -> PairClasses:
     """Classify pairs ``(dom, tgt)``: shared edge / shared vertex / straddling / regular, and the Gauss orders."""

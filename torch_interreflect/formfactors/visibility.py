@@ -403,7 +403,7 @@ def hemisphere_fractions(scene: Scene, idx: Tensor, *, samples: int, points: int
         area = np.empty((k, P), dtype=np.float64)
         args = [t.contiguous().numpy() for t in (corners[f], normals[f], t1[f], t2[f])]
         if kern is None:
-            _hemisphere_rays_torch(*args, points, samples, seed.numpy(), caster.eps, origin, direction, area)
+            _hemisphere_rays_numpy(*args, points, samples, seed.numpy(), caster.eps, origin, direction, area)
         else:
             launch(kern.hemisphere_rays, *args, points, samples, seed.numpy(), float(caster.eps), origin, direction,
                    area)
@@ -425,7 +425,7 @@ def hemisphere_fractions(scene: Scene, idx: Tensor, *, samples: int, points: int
     return out_escape, out_back
 
 
-def _hemisphere_rays_torch(corners, normals, t1, t2, points, n, seed, eps, origin, direction, area) -> None:
+def _hemisphere_rays_numpy(corners, normals, t1, t2, points, n, seed, eps, origin, direction, area) -> None:
     """:func:`._numba_visibility.hemisphere_rays` in numpy (the path without numba), same samples."""
     P, D = points * points, n * n
     p = np.arange(P)
