@@ -192,23 +192,37 @@ def stable_buckets(key, n_keys, idx, counts):
         start[k] += 1
 
 
-@njit(cache=True)
+#: pairs per block of :func:`pair_entries` (each block's kept pairs are counted, then written from its offset)
+_ENTRY_BLOCK = 1 << 16
+
+
+@njit(cache=True, parallel=True)
 def pair_entries(areas, dom, tgt, value, rows, cols, vals):
     """Both directions of the pairs with ``value > 0``: ``F_dom,tgt = value / A_dom`` first (in pair order), then
-    ``F_tgt,dom = value / A_tgt``; ``rows``, ``cols``, ``vals`` hold twice the kept pairs."""
-    m = 0
-    for p in range(dom.shape[0]):
-        if value[p] > 0:
-            m += 1
-    k = 0
-    for p in range(dom.shape[0]):
-        if value[p] > 0:
-            a = dom[p]
-            b = tgt[p]
-            rows[k] = a
-            cols[k] = b
-            vals[k] = value[p] / areas[a]
-            rows[m + k] = b
-            cols[m + k] = a
-            vals[m + k] = value[p] / areas[b]
-            k += 1
+    ``F_tgt,dom = value / A_tgt``; ``rows``, ``cols``, ``vals`` hold twice the kept pairs. Blocks of pairs are
+    counted, then filled, in parallel."""
+    P = dom.shape[0]
+    nb = (P + _ENTRY_BLOCK - 1) // _ENTRY_BLOCK
+    counts = np.zeros(nb + 1, dtype=np.int64)
+    for b in prange(nb):
+        c = 0
+        for p in range(b * _ENTRY_BLOCK, min(P, (b + 1) * _ENTRY_BLOCK)):
+            if value[p] > 0:
+                c += 1
+        counts[b + 1] = c
+    for b in range(nb):
+        counts[b + 1] += counts[b]
+    m = counts[nb]
+    for b in prange(nb):
+        k = counts[b]
+        for p in range(b * _ENTRY_BLOCK, min(P, (b + 1) * _ENTRY_BLOCK)):
+            if value[p] > 0:
+                a = dom[p]
+                t = tgt[p]
+                rows[k] = a
+                cols[k] = t
+                vals[k] = value[p] / areas[a]
+                rows[m + k] = t
+                cols[m + k] = a
+                vals[m + k] = value[p] / areas[t]
+                k += 1

@@ -34,7 +34,7 @@ from ..geometry._polygon import (
 )
 from ..geometry.scene import Scene
 from .checks import check_row_sums, warn_if_wrong_side
-from .compiled import loops
+from .compiled import launch, loops
 from .fused import Backend, fan_sums, group_sums
 from .montecarlo import monte_carlo
 from .operator import FormFactors
@@ -251,8 +251,8 @@ def pair_entries(areas: Tensor, dom: Tensor, tgt: Tensor, value: Tensor) -> tupl
         n = 2 * int((value > 0).sum())
         rows, cols = torch.empty(n, dtype=torch.int64), torch.empty(n, dtype=torch.int64)
         vals = torch.empty(n, dtype=value.dtype)
-        kern.pair_entries(*(t.contiguous().numpy() for t in (areas.to(value.dtype), dom, tgt, value)), rows.numpy(),
-                          cols.numpy(), vals.numpy())
+        launch(kern.pair_entries, *(t.contiguous().numpy() for t in (areas.to(value.dtype), dom, tgt, value)),
+               rows.numpy(), cols.numpy(), vals.numpy())
         return rows, cols, vals
     keep = torch.nonzero(value > 0).reshape(-1)  # areas are positive: both directions are kept or dropped together
     dom, tgt, value = dom[keep], tgt[keep], value[keep]
@@ -269,9 +269,9 @@ def assemble(rows: Tensor, cols: Tensor, vals: Tensor, F: int, layout: str, dtyp
         sparse = F > _DENSE_MAX_FACETS and rows.numel() <= SPARSE_DENSITY * F * F
         layout = "sparse" if sparse else "dense"
     if layout == "dense":
-        mat = torch.zeros(F, F, dtype=torch.float64, device=vals.device)
-        mat[rows, cols] = vals
-        return mat.to(dtype), layout
+        mat = torch.zeros(F, F, dtype=dtype, device=vals.device)  # in the output dtype: no [F, F] copy
+        mat[rows, cols] = vals.to(dtype)
+        return mat, layout
     return sparse_matrix(rows, cols, vals, (F, F), dtype), layout
 
 
