@@ -157,3 +157,21 @@ def test_sky_discounts_back_faces_seen_from_under_a_block():
     assert abs(float(E0[0, 0]) - expected) < 0.01 * math.pi
     plain = ti.lights.sky(scene, K, torch.ones(1, dtype=torch.float64), backfaces=False)
     assert float(plain[0, 0]) > float(E0[0, 0])
+
+
+@pytest.mark.parametrize("kw", [dict(sky_samples=0), dict(sky_samples=2.5), dict(sky_samples=True)])
+def test_bad_sky_sample_counts_raise(kw):
+    """Checked up front, even where no facet needs rays (an open V-groove)."""
+    s = ti.scenes.v_groove(60.0, divisions=1, dtype=torch.float64)
+    with pytest.raises(ti.errors.ValueRangeError, match="sky_samples"):
+        ti.lights.sky(s, ti.form_factors(s), torch.ones(1, dtype=torch.float64), **kw)
+    with pytest.raises(ti.errors.ValueRangeError, match="sky_samples"):
+        ti.lights.back_coverage(s, **kw)
+
+
+def test_bad_hemisphere_point_count_raises():
+    from torch_interreflect.formfactors.visibility import hemisphere_fractions
+
+    s = ti.scenes.v_groove(60.0, divisions=1, dtype=torch.float64)
+    with pytest.raises(ti.errors.ValueRangeError, match="points"):
+        hemisphere_fractions(s, torch.arange(2), samples=4, points=0)

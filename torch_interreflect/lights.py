@@ -42,7 +42,7 @@ from torch import Tensor
 from ._deprecation import renamed_keywords
 from .errors import ShapeError, ValueRangeError
 from .formfactors.operator import FormFactorOperator
-from .formfactors.visibility import hemisphere_fractions
+from .formfactors.visibility import check_sample_count, hemisphere_fractions
 from .geometry.scene import Scene
 
 __all__ = ["back_coverage", "directional", "light_geometry", "lit_fraction", "sky", "uniform"]
@@ -207,6 +207,7 @@ def sky(
         )
     if backfaces not in ("auto", True, False):
         raise ValueError(f"backfaces must be 'auto', True or False; got {backfaces!r}")
+    check_sample_count(sky_samples, "sky_samples")
     open_part = 1.0 - form_factors.row_sums().to(torch.float64).cpu()  # keeps the gradient of F (module docstring)
     if backfaces is not False:
         from .geometry._polygon import facing_any
@@ -252,6 +253,8 @@ def back_coverage(
     """
     from .geometry._polygon import facing_any
 
+    check_sample_count(sky_samples, "sky_samples")
+    check_sample_count(points, "points")
     sc = _detached_cpu(scene)
     F = sc.num_facets
     b = torch.zeros(F, dtype=torch.float64)

@@ -256,3 +256,18 @@ def test_old_keyword_names_still_work_with_a_deprecation_warning():
         ti.form_factors(s, method="monte_carlo", samples=1000, generator=torch.Generator().manual_seed(0))
     with pytest.raises(TypeError, match="both"):
         ti.form_factors(s, tol=1e-4, quadrature_tol=1e-4)
+
+
+def test_sparse_form_factors_print_no_torch_warnings():
+    """Sparse matrices are built without torch's "sparse CSR support is in beta" / "invariant checks are implicitly
+    disabled" warnings (they used to appear on every sparse call)."""
+    import warnings
+
+    scene = ti.scenes.v_groove(40.0, divisions=3, dtype=torch.float64)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        K = ti.form_factors(scene, layout="sparse")
+        ti.solve(K, torch.full((scene.num_facets,), 0.8, dtype=torch.float64),
+                 torch.ones(scene.num_facets, 1, dtype=torch.float64))
+    assert K.matrix.layout == torch.sparse_csr
+    assert not [w for w in caught if "sparse" in str(w.message).lower()], [str(w.message) for w in caught]

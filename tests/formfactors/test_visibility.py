@@ -102,7 +102,8 @@ def test_small_targets_get_fewer_samples():
 
 @pytest.mark.parametrize("kw", [dict(visibility_samples=0), dict(visibility_samples=2.5), dict(visibility_tol=-1e-3),
                                 dict(visibility_tol=float("nan")), dict(visibility_angle=0.0),
-                                dict(visibility_angle=-0.3)])
+                                dict(visibility_angle=-0.3), dict(visibility_jitter="yes"),
+                                dict(visibility_jitter=None)])
 def test_bad_visibility_options_raise(kw):
     scene, _ = _setup(torch.float64)
     with pytest.raises(ti.errors.ValueRangeError, match=next(iter(kw))):

@@ -152,7 +152,7 @@ def form_factors(
         True
     """
     _check_arguments(scene, method, occlusion, quadrature_tol, layout, backend)
-    check_visibility_options(visibility_samples, visibility_tol, visibility_angle)
+    check_visibility_options(visibility_samples, visibility_tol, visibility_angle, visibility_jitter)
     t0 = time.perf_counter()
     F = scene.num_facets
     if progress is None:

@@ -26,8 +26,8 @@ from ..geometry.scene import Scene
 from .compiled import launch, loops
 from .contour import point_polygon_factor
 
-__all__ = ["VISIBILITY_ANGLE", "PointVisibility", "blocker_candidates", "check_visibility_options", "grid_offsets",
-           "hemisphere_fractions"]
+__all__ = ["VISIBILITY_ANGLE", "PointVisibility", "blocker_candidates", "check_sample_count",
+           "check_visibility_options", "grid_offsets", "hemisphere_fractions"]
 
 #: Default angular size (radians) per visibility sample of a target (:class:`PointVisibility`'s ``angle``).
 VISIBILITY_ANGLE = 0.3
@@ -75,11 +75,18 @@ def blocker_candidates(sc: Scene, dom: Tensor, tgt: Tensor, eps: float) -> Tenso
     return need
 
 
-def check_visibility_options(samples: Any, tol: Any, angle: Any) -> None:
+def check_sample_count(value: Any, name: str) -> None:
+    """Raise :class:`ValueRangeError` unless ``value`` is an integer ≥ 1 (a number of samples per axis)."""
+    if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+        raise ValueRangeError(f"{name} must be an integer >= 1; got {value!r}")
+
+
+def check_visibility_options(samples: Any, tol: Any, angle: Any, jitter: Any = True) -> None:
     """Raise for visibility settings out of range: ``samples`` an integer ≥ 1, ``tol`` ``None`` or a finite number
-    ≥ 0, ``angle`` ``None`` or a finite number > 0 (radians)."""
-    if isinstance(samples, bool) or not isinstance(samples, int) or samples < 1:
-        raise ValueRangeError(f"visibility_samples must be an integer >= 1; got {samples!r}")
+    ≥ 0, ``angle`` ``None`` or a finite number > 0 (radians), ``jitter`` a bool."""
+    check_sample_count(samples, "visibility_samples")
+    if not isinstance(jitter, bool):
+        raise ValueRangeError(f"visibility_jitter must be True or False; got {jitter!r}")
     if tol is not None and not (isinstance(tol, (int, float)) and math.isfinite(tol) and tol >= 0):
         raise ValueRangeError(f"visibility_tol must be None or a finite number >= 0; got {tol!r}")
     if angle is not None and not (isinstance(angle, (int, float)) and math.isfinite(angle) and angle > 0):
@@ -130,7 +137,7 @@ class PointVisibility:
 
     def __init__(self, sc: Scene, n: int, caster: Any = None, *, tol: float | None = None,
                  max_levels: int = 6, angle: float | None = None, jitter: bool = True) -> None:
-        check_visibility_options(n, tol, angle)
+        check_visibility_options(n, tol, angle, jitter)
         sc = _detached(sc)
         self.caster = caster if caster is not None else RayCaster(sc)
         self.n = int(n)
@@ -383,7 +390,12 @@ def hemisphere_fractions(scene: Scene, idx: Tensor, *, samples: int, points: int
 
     Returns:
         ``(escape [K], back [K])``: float64 on the CPU (or None where not asked for).
+
+    Raises:
+        ValueRangeError: ``samples`` or ``points`` is not an integer ≥ 1.
     """
+    check_sample_count(samples, "samples")
+    check_sample_count(points, "points")
     sc = _detached(scene.to(torch.float64).to("cpu"))
     kern = loops("visibility")
     caster = RayCaster(sc)
