@@ -43,6 +43,7 @@ from ._deprecation import renamed_keywords
 from .errors import ShapeError, ValueRangeError
 from .formfactors.operator import FormFactorOperator
 from .formfactors.visibility import check_sample_count, hemisphere_fractions
+from .geometry.raycast import RayCaster
 from .geometry.scene import Scene
 
 __all__ = ["back_coverage", "directional", "light_geometry", "lit_fraction", "sky", "uniform"]
@@ -221,13 +222,15 @@ def sky(
         maybe_back = facing_any(scene, one_way=True) if backfaces == "auto" else torch.ones(F, dtype=torch.bool)
         open_part = open_part.clone()
         sc = _detached_cpu(scene)
-        idx = torch.nonzero(approx).reshape(-1)
-        if idx.numel():
-            open_part[idx] = hemisphere_fractions(sc, idx, samples=sky_samples, points=8, back=False)[0]
-        idx = torch.nonzero(maybe_back & ~approx).reshape(-1)
-        if idx.numel():
-            open_part[idx] = open_part[idx] - hemisphere_fractions(sc, idx, samples=sky_samples, points=8,
-                                                                   escape=False)[1]
+        escape_idx = torch.nonzero(approx).reshape(-1)
+        back_idx = torch.nonzero(maybe_back & ~approx).reshape(-1)
+        caster = RayCaster(sc) if escape_idx.numel() or back_idx.numel() else None  # one BVH for both passes
+        if escape_idx.numel():
+            open_part[escape_idx] = hemisphere_fractions(sc, escape_idx, samples=sky_samples, points=8, back=False,
+                                                         caster=caster)[0]
+        if back_idx.numel():
+            open_part[back_idx] = open_part[back_idx] - hemisphere_fractions(
+                sc, back_idx, samples=sky_samples, points=8, escape=False, caster=caster)[1]
     open_part = open_part.clamp_min(0).to(spd.dtype).to(spd.device)
     return math.pi * open_part[:, None] * spd[..., None, :]
 

@@ -50,7 +50,7 @@ def facing_pairs(sc: Scene, eps: float, output: tuple[str, int]) -> tuple[Tensor
         c, n, m = (t.detach().contiguous().numpy() for t in (sc.corners, sc.normals, sc.centroids))
         counts = np.zeros(F, dtype=np.int64)
         none = np.empty(0, dtype=np.int64)
-        launch(kern.facing_pairs, c, n, m, float(eps), counts, none, none, counts)
+        launch(kern.facing_pairs, c, n, m, float(eps), np.zeros(F, dtype=np.int64), none, none, counts)
         pairs = int(counts.sum())
     dense = dense or (layout == "auto" and 2 * pairs > SPARSE_DENSITY * F * F)
     check_memory(dense_kernel_bytes(F, pairs, dense, itemsize), what + f" ({pairs} facet pairs)", remedy)

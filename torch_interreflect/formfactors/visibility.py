@@ -371,8 +371,8 @@ _END_GAP = 1e-4
 _MARGIN = 0.1
 
 
-def hemisphere_fractions(scene: Scene, idx: Tensor, *, samples: int, points: int,
-                         escape: bool = True, back: bool = True) -> tuple[Tensor | None, Tensor | None]:
+def hemisphere_fractions(scene: Scene, idx: Tensor, *, samples: int, points: int, escape: bool = True,
+                         back: bool = True, caster: Any = None) -> tuple[Tensor | None, Tensor | None]:
     """Cosine-weighted fractions of the hemispheres of facets ``idx`` whose rays escape the scene, and whose first
     hit is the back of a facet (used for the sky's open part and back coverage, :func:`~torch_interreflect.lights.sky`).
 
@@ -387,6 +387,7 @@ def hemisphere_fractions(scene: Scene, idx: Tensor, *, samples: int, points: int
         samples: Directions per axis.
         points: Points per axis on each facet.
         escape, back: Which fraction to compute (the other comes back as None).
+        caster: A :class:`~torch_interreflect.geometry.raycast.RayCaster` of the scene to reuse (built when None).
 
     Returns:
         ``(escape [K], back [K])``: float64 on the CPU (or None where not asked for).
@@ -398,7 +399,7 @@ def hemisphere_fractions(scene: Scene, idx: Tensor, *, samples: int, points: int
     check_sample_count(points, "points")
     sc = _detached(scene.to(torch.float64).to("cpu"))
     kern = loops("visibility")
-    caster = RayCaster(sc)
+    caster = caster if caster is not None else RayCaster(sc)
     K, P, D = idx.numel(), points * points, samples * samples
     out_escape = torch.empty(K, dtype=torch.float64) if escape else None
     out_back = torch.empty(K, dtype=torch.float64) if back else None
