@@ -49,7 +49,7 @@ def test_directional_batch_of_spectra_and_gradients():
 def test_sky_from_escaping_rays_matches_the_form_factors_where_both_are_exact():
     """Escaping rays (low-discrepancy points and directions) against 1 − Σ_j F_ij of an unoccluded V-groove
     (measured: 2.8e-3 at most)."""
-    from torch_interreflect.formfactors.visibility import hemisphere_fractions
+    from torch_interreflect.formfactors.hemisphere import hemisphere_fractions
 
     s = ti.scenes.v_groove(60.0, size=(1.0, 1.0), divisions=2, dtype=torch.float64)
     escape, back = hemisphere_fractions(s, torch.arange(s.num_facets), samples=12, points=8)
@@ -61,7 +61,7 @@ def test_hemisphere_rays_compiled_and_numpy_agree(monkeypatch):
     """The compiled ray set-up and its numpy twin (no numba) cast the same rays: same fractions to rounding, on a
     Cornell box whose floor sees the blocks' open bottoms (back coverage up to 0.32)."""
     from torch_interreflect.formfactors import compiled
-    from torch_interreflect.formfactors.visibility import hemisphere_fractions
+    from torch_interreflect.formfactors.hemisphere import hemisphere_fractions
 
     c = ti.scenes.cornell_box(3)
     idx = torch.arange(c.num_facets)
@@ -170,7 +170,7 @@ def test_bad_sky_sample_counts_raise(kw):
 
 
 def test_bad_hemisphere_point_count_raises():
-    from torch_interreflect.formfactors.visibility import hemisphere_fractions
+    from torch_interreflect.formfactors.hemisphere import hemisphere_fractions
 
     s = ti.scenes.v_groove(60.0, divisions=1, dtype=torch.float64)
     with pytest.raises(ti.errors.ValueRangeError, match="points"):

@@ -41,8 +41,9 @@ from torch import Tensor
 
 from ._deprecation import renamed_keywords
 from .errors import ShapeError, ValueRangeError
+from .formfactors.hemisphere import hemisphere_fractions
 from .formfactors.operator import FormFactorOperator
-from .formfactors.visibility import check_sample_count, hemisphere_fractions
+from .formfactors.sampling import check_sample_count
 from .geometry.raycast import RayCaster
 from .geometry.scene import Scene
 
@@ -188,7 +189,7 @@ def sky(
             them (found in row blocks, no ``[F, F]`` matrix); ``True`` for every facet; ``False`` never (``b = 0``).
         sky_samples: Stratified cosine-weighted directions per axis (``sky_samples²`` per point, 8 × 8 points per
             facet, both with low-discrepancy offsets:
-            :func:`~torch_interreflect.formfactors.visibility.hemisphere_fractions`) for the ray-cast parts (``b``,
+            :func:`~torch_interreflect.formfactors.hemisphere.hemisphere_fractions`) for the ray-cast parts (``b``,
             and the open part of facets with occluded pairs; formerly ``samples``).
 
     Shape:

@@ -5,8 +5,8 @@
 - :mod:`.pairs`: culling and classification of facet pairs; :mod:`.fused`: the quadrature's compiled loops and
   their adjoints; :mod:`.compiled`: loading and launching the numba loops (``_numba_*`` modules).
 - :mod:`.contour`: :func:`point_polygon_factor`; :mod:`.rules`: quadrature rules and orders.
-- :mod:`.visibility`: occlusion by Embree rays (jittered per-point samples, hemisphere fractions for the sky);
-  :mod:`.montecarlo`: the paper's estimator.
+- :mod:`.visibility`: occlusion by Embree rays (jittered per-point samples); :mod:`.hemisphere`: the hemisphere
+  fractions of the sky; :mod:`.sampling`: their low-discrepancy samples; :mod:`.montecarlo`: the paper's estimator.
 - :mod:`.hierarchical`: :func:`hierarchical_form_factors` for large scenes (the builder), with
   :mod:`.hierarchical_operator` (:class:`HierarchicalFormFactors`), :mod:`.cluster_tree` (cluster tree and
   traversal) and :mod:`.cluster_visibility` (visible fraction of far blocks).

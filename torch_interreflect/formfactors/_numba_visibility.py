@@ -15,7 +15,7 @@ from numba import njit, prange
 
 from ._numba_geometry import bilinear_map, jacobian_norm
 
-#: the R2 sequence's step (see :data:`.visibility._R2`)
+#: the R2 sequence's step (see :data:`.sampling.R2_STEP`)
 _G0 = 0.7548776662466927
 _G1 = 0.5698402909980532
 #: steps of a second Kronecker sequence (√2 − 1, √3 − 1)

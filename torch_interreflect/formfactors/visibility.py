@@ -20,14 +20,14 @@ import torch
 from torch import Tensor
 
 from ..errors import ValueRangeError
-from ..geometry._polygon import bilinear, clip_polygons, facet_samples, plane_groups, tangent_frame
+from ..geometry._polygon import bilinear, clip_polygons, facet_samples, plane_groups
 from ..geometry.raycast import RayCaster
 from ..geometry.scene import Scene
 from .compiled import launch, loops
 from .contour import point_polygon_factor
+from .sampling import R2_STEP, check_sample_count, pair_seeds
 
-__all__ = ["VISIBILITY_ANGLE", "PointVisibility", "blocker_candidates", "check_sample_count",
-           "check_visibility_options", "grid_offsets", "hemisphere_fractions"]
+__all__ = ["VISIBILITY_ANGLE", "PointVisibility", "blocker_candidates", "check_visibility_options", "grid_offsets"]
 
 #: Default angular size (radians) per visibility sample of a target (:class:`PointVisibility`'s ``angle``).
 VISIBILITY_ANGLE = 0.3
@@ -73,12 +73,6 @@ def blocker_candidates(sc: Scene, dom: Tensor, tgt: Tensor, eps: float) -> Tenso
         )
         need[s : s + chunk] = (straddle & overlap & reach).any(-1)
     return need
-
-
-def check_sample_count(value: Any, name: str) -> None:
-    """Raise :class:`ValueRangeError` unless ``value`` is an integer ≥ 1 (a number of samples per axis)."""
-    if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-        raise ValueRangeError(f"{name} must be an integer >= 1; got {value!r}")
 
 
 def check_visibility_options(samples: Any, tol: Any, angle: Any, jitter: Any = True) -> None:
@@ -235,7 +229,7 @@ class PointVisibility:
         for s in range(0, P, per):
             a, b = dom[s : s + per], tgt[s : s + per]
             c = a.numel()
-            seed = _seeds(a, b)
+            seed = pair_seeds(a, b)
             origin = np.empty((c * Q * S, 3), dtype=np.float32)
             direction = np.empty((c * Q * S, 3), dtype=np.float32)
             tfar = np.empty(c * Q * S, dtype=np.float32)
@@ -359,9 +353,6 @@ class PointVisibility:
         return point_polygon_factor(xx[:, None, :], nx, poly).reshape(R, C).clamp_min(0)
 
 
-#: The R2 sequence's step (Roberts 2018): ``1/φ₂, 1/φ₂²`` with ``φ₂`` the plastic number; consecutive points fill the
-#: unit square with low discrepancy.
-_R2 = (0.7548776662466927, 0.5698402909980532)
 #: Visibility rays skip this share of their length (plus the caster's ``eps``) at each end. A ray that leaves its
 #: facet, or arrives at its target, at a grazing angle ``θ`` runs within ``gap · sin θ`` of that facet's plane, and
 #: float32 rays hit the facet (or its coplanar neighbour) when that is below the coordinates' rounding: on the
@@ -369,109 +360,6 @@ _R2 = (0.7548776662466927, 0.5698402909980532)
 _END_GAP = 1e-4
 #: Jittered samples keep this share of a cell from each of its sides (see :func:`grid_offsets`).
 _MARGIN = 0.1
-
-
-def hemisphere_fractions(scene: Scene, idx: Tensor, *, samples: int, points: int, escape: bool = True,
-                         back: bool = True, caster: Any = None) -> tuple[Tensor | None, Tensor | None]:
-    """Cosine-weighted fractions of the hemispheres of facets ``idx`` whose rays escape the scene, and whose first
-    hit is the back of a facet (used for the sky's open part and back coverage, :func:`~torch_interreflect.lights.sky`).
-
-    From ``points²`` points per facet (one per cell of the unit square, jittered by a low-discrepancy sequence
-    rotated per facet) ``samples²`` stratified cosine-weighted directions each (the direction grid rotated per
-    point), area weighted; deterministic. Escape rays use Embree's occlusion query, back rays its first-hit query
-    (about twice the cost), each only when asked for. Compiled ray set-up where numba is present.
-
-    Args:
-        scene: The scene.
-        idx: Facets. Shape ``[K]`` (int64).
-        samples: Directions per axis.
-        points: Points per axis on each facet.
-        escape, back: Which fraction to compute (the other comes back as None).
-        caster: A :class:`~torch_interreflect.geometry.raycast.RayCaster` of the scene to reuse (built when None).
-
-    Returns:
-        ``(escape [K], back [K])``: float64 on the CPU (or None where not asked for).
-
-    Raises:
-        ValueRangeError: ``samples`` or ``points`` is not an integer ≥ 1.
-    """
-    check_sample_count(samples, "samples")
-    check_sample_count(points, "points")
-    sc = _detached(scene.to(torch.float64).to("cpu"))
-    kern = loops("visibility")
-    caster = caster if caster is not None else RayCaster(sc)
-    K, P, D = idx.numel(), points * points, samples * samples
-    out_escape = torch.empty(K, dtype=torch.float64) if escape else None
-    out_back = torch.empty(K, dtype=torch.float64) if back else None
-    normals = sc.normals
-    t1, t2 = tangent_frame(normals)
-    corners = sc.corners - torch.as_tensor(caster.origin)
-    per = max(1, (1 << 20) // (P * D))  # about a million rays at a time
-    for s in range(0, K, per):
-        f = idx[s : s + per]
-        k = f.numel()
-        seed = _seeds(f, f)
-        origin = np.empty((k * P * D, 3), dtype=np.float32)
-        direction = np.empty((k * P * D, 3), dtype=np.float32)
-        area = np.empty((k, P), dtype=np.float64)
-        args = [t.contiguous().numpy() for t in (corners[f], normals[f], t1[f], t2[f])]
-        if kern is None:
-            _hemisphere_rays_numpy(*args, points, samples, seed.numpy(), caster.eps, origin, direction, area)
-        else:
-            launch(kern.hemisphere_rays, *args, points, samples, seed.numpy(), float(caster.eps), origin, direction,
-                   area)
-        for want, out, flag in ((escape, out_escape, "escape"), (back, out_back, "back")):
-            if not want:
-                continue
-            if flag == "escape":
-                hit = ~caster.occluded(origin, direction, np.full(len(origin), 4.0 * caster.size, dtype=np.float32))
-            else:
-                facet = caster.hit_facets(origin, direction)
-                nrm = sc.normals.numpy()[np.maximum(facet, 0)]
-                hit = (facet >= 0) & ((direction * nrm).sum(-1) > 0)
-            res = torch.empty(k, dtype=torch.float64)
-            if kern is None:
-                res = torch.as_tensor((area * hit.reshape(k, P, D).mean(-1)).sum(-1))
-            else:
-                launch(kern.hemisphere_sums, area, hit, D, res.numpy())
-            out[s : s + per] = res
-    return out_escape, out_back
-
-
-def _hemisphere_rays_numpy(corners, normals, t1, t2, points, n, seed, eps, origin, direction, area) -> None:
-    """:func:`._numba_visibility.hemisphere_rays` in numpy (the path without numba), same samples."""
-    P, D = points * points, n * n
-    p = np.arange(P)
-    a = np.mod(seed[:, :1] + (p + 1) * _R2[0], 1.0)
-    b = np.mod(seed[:, 1:] + (p + 1) * _R2[1], 1.0)
-    u = (p // points + a) / points  # [K, P]
-    v = (p % points + b) / points
-    x, jac = bilinear(torch.as_tensor(corners), torch.as_tensor(u), torch.as_tensor(v))
-    x, jac = x.numpy() + eps * normals[:, None, :], jac.numpy()
-    tot = jac.sum(1, keepdims=True)
-    area[:] = np.where(tot > 0, jac / np.where(tot > 0, tot, 1.0), 1.0 / P)
-    ou = np.mod(seed[:, 1:] + (p + 1) * _KRONECKER[0], 1.0)[..., None]  # [K, P, 1]
-    ov = np.mod(seed[:, :1] + (p + 1) * _KRONECKER[1], 1.0)[..., None]
-    d = np.arange(D)
-    s1 = (d // n + ou) / n
-    s2 = (d % n + ov) / n
-    rad, ang = np.sqrt(s1), 2.0 * math.pi * s2
-    lx, ly, lz = rad * np.cos(ang), rad * np.sin(ang), np.sqrt(np.maximum(1.0 - s1, 0.0))
-    dirs = (lx[..., None] * t1[:, None, None] + ly[..., None] * t2[:, None, None]
-            + lz[..., None] * normals[:, None, None])
-    origin[:] = np.broadcast_to(x[:, :, None, :], dirs.shape).reshape(-1, 3)
-    direction[:] = dirs.reshape(-1, 3)
-
-
-#: steps of the second Kronecker sequence of :func:`hemisphere_fractions` (√2 − 1, √3 − 1)
-_KRONECKER = (0.41421356237309515, 0.7320508075688772)
-
-
-def _seeds(dom: Tensor, tgt: Tensor) -> Tensor:
-    """The per-pair rotation ``[P, 2]`` in ``[0, 1)`` of :func:`grid_offsets` (a hash of the two facet indices)."""
-    d, t = dom.to(torch.int64), tgt.to(torch.int64)
-    seed = torch.stack([(d * 2654435761 + t * 2246822519) % 1048573, (d * 3266489917 + t * 668265263) % 1048571], -1)
-    return seed.to(torch.float64) / 1048576.0
 
 
 def grid_offsets(dom: Tensor, tgt: Tensor, Q: int, S: int) -> Tensor:
@@ -482,9 +370,9 @@ def grid_offsets(dom: Tensor, tgt: Tensor, Q: int, S: int) -> Tensor:
     sides: a sample on the very edge of a target that touches the domain (a contact line) would cast a ray grazing
     the domain's own plane, which float32 rays can hit (measured: a 2e-6 loss on a wall standing on a floor with
     full-cell offsets, none with these). Deterministic: the same pair, point and cell always get the same offset."""
-    seed = _seeds(dom, tgt)
+    seed = pair_seeds(dom, tgt)
     k = torch.arange(1, Q * S + 1, dtype=torch.float64).reshape(1, Q, S, 1)
-    xi = torch.frac(seed[:, None, None, :] + k * torch.tensor(_R2, dtype=torch.float64))
+    xi = torch.frac(seed[:, None, None, :] + k * torch.tensor(R2_STEP, dtype=torch.float64))
     return _MARGIN + (1 - 2 * _MARGIN) * xi
 
 

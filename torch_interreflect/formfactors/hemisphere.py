@@ -1,0 +1,113 @@
+"""The cosine-weighted hemisphere of facets by Embree rays: the fraction that escapes the scene (the sky's open
+part) and the fraction whose first hit is a facet's back (:func:`~torch_interreflect.lights.sky`,
+:func:`~torch_interreflect.lights.back_coverage`). Deterministic low-discrepancy samples; compiled ray set-up
+(``_numba_visibility``) where numba is present, a numpy twin with the same samples elsewhere."""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from ..geometry._polygon import bilinear, tangent_frame
+from ..geometry.raycast import RayCaster
+from ..geometry.scene import Scene
+from .compiled import launch, loops
+from .sampling import KRONECKER_STEP, R2_STEP, check_sample_count, pair_seeds
+
+__all__ = ["hemisphere_fractions"]
+
+
+def hemisphere_fractions(scene: Scene, idx: Tensor, *, samples: int, points: int, escape: bool = True,
+                         back: bool = True, caster: Any = None) -> tuple[Tensor | None, Tensor | None]:
+    """Cosine-weighted fractions of the hemispheres of facets ``idx`` whose rays escape the scene, and whose first
+    hit is the back of a facet (used for the sky's open part and back coverage, :func:`~torch_interreflect.lights.sky`).
+
+    From ``points²`` points per facet (one per cell of the unit square, jittered by a low-discrepancy sequence
+    rotated per facet) ``samples²`` stratified cosine-weighted directions each (the direction grid rotated per
+    point), area weighted; deterministic. Escape rays use Embree's occlusion query, back rays its first-hit query
+    (about twice the cost), each only when asked for. Compiled ray set-up where numba is present.
+
+    Args:
+        scene: The scene.
+        idx: Facets. Shape ``[K]`` (int64).
+        samples: Directions per axis.
+        points: Points per axis on each facet.
+        escape, back: Which fraction to compute (the other comes back as None).
+        caster: A :class:`~torch_interreflect.geometry.raycast.RayCaster` of the scene to reuse (built when None).
+
+    Returns:
+        ``(escape [K], back [K])``: float64 on the CPU (or None where not asked for).
+
+    Raises:
+        ValueRangeError: ``samples`` or ``points`` is not an integer ≥ 1.
+    """
+    check_sample_count(samples, "samples")
+    check_sample_count(points, "points")
+    sc = scene.to(torch.float64).to("cpu")
+    kern = loops("visibility")
+    caster = caster if caster is not None else RayCaster(sc)
+    K, P, D = idx.numel(), points * points, samples * samples
+    out_escape = torch.empty(K, dtype=torch.float64) if escape else None
+    out_back = torch.empty(K, dtype=torch.float64) if back else None
+    normals = sc.normals.detach()
+    t1, t2 = tangent_frame(normals)
+    corners = sc.corners.detach() - torch.as_tensor(caster.origin)
+    per = max(1, (1 << 20) // (P * D))  # about a million rays at a time
+    for s in range(0, K, per):
+        f = idx[s : s + per]
+        k = f.numel()
+        seed = pair_seeds(f, f)
+        origin = np.empty((k * P * D, 3), dtype=np.float32)
+        direction = np.empty((k * P * D, 3), dtype=np.float32)
+        area = np.empty((k, P), dtype=np.float64)
+        args = [t.contiguous().numpy() for t in (corners[f], normals[f], t1[f], t2[f])]
+        if kern is None:
+            _hemisphere_rays_numpy(*args, points, samples, seed.numpy(), caster.eps, origin, direction, area)
+        else:
+            launch(kern.hemisphere_rays, *args, points, samples, seed.numpy(), float(caster.eps), origin, direction,
+                   area)
+        for want, out, flag in ((escape, out_escape, "escape"), (back, out_back, "back")):
+            if not want:
+                continue
+            if flag == "escape":
+                hit = ~caster.occluded(origin, direction, np.full(len(origin), 4.0 * caster.size, dtype=np.float32))
+            else:
+                facet = caster.hit_facets(origin, direction)
+                nrm = normals.numpy()[np.maximum(facet, 0)]
+                hit = (facet >= 0) & ((direction * nrm).sum(-1) > 0)
+            res = torch.empty(k, dtype=torch.float64)
+            if kern is None:
+                res = torch.as_tensor((area * hit.reshape(k, P, D).mean(-1)).sum(-1))
+            else:
+                launch(kern.hemisphere_sums, area, hit, D, res.numpy())
+            out[s : s + per] = res
+    return out_escape, out_back
+
+
+def _hemisphere_rays_numpy(corners, normals, t1, t2, points, n, seed, eps, origin, direction, area) -> None:
+    """:func:`._numba_visibility.hemisphere_rays` in numpy (the path without numba), same samples."""
+    P, D = points * points, n * n
+    p = np.arange(P)
+    a = np.mod(seed[:, :1] + (p + 1) * R2_STEP[0], 1.0)
+    b = np.mod(seed[:, 1:] + (p + 1) * R2_STEP[1], 1.0)
+    u = (p // points + a) / points  # [K, P]
+    v = (p % points + b) / points
+    x, jac = bilinear(torch.as_tensor(corners), torch.as_tensor(u), torch.as_tensor(v))
+    x, jac = x.numpy() + eps * normals[:, None, :], jac.numpy()
+    tot = jac.sum(1, keepdims=True)
+    area[:] = np.where(tot > 0, jac / np.where(tot > 0, tot, 1.0), 1.0 / P)
+    ou = np.mod(seed[:, 1:] + (p + 1) * KRONECKER_STEP[0], 1.0)[..., None]  # [K, P, 1]
+    ov = np.mod(seed[:, :1] + (p + 1) * KRONECKER_STEP[1], 1.0)[..., None]
+    d = np.arange(D)
+    s1 = (d // n + ou) / n
+    s2 = (d % n + ov) / n
+    rad, ang = np.sqrt(s1), 2.0 * math.pi * s2
+    lx, ly, lz = rad * np.cos(ang), rad * np.sin(ang), np.sqrt(np.maximum(1.0 - s1, 0.0))
+    dirs = (lx[..., None] * t1[:, None, None] + ly[..., None] * t2[:, None, None]
+            + lz[..., None] * normals[:, None, None])
+    origin[:] = np.broadcast_to(x[:, :, None, :], dirs.shape).reshape(-1, 3)
+    direction[:] = dirs.reshape(-1, 3)
