@@ -2,7 +2,8 @@
 
 :func:`loops` gives the numba module of a stage (``"quadrature"``: the fused contour sums and their adjoints;
 ``"pairs"``: culling, classification and blocker tests of facet pairs; ``"visibility"``: rays and visible
-fractions of the fixed-grid visibility estimate), or None when numba is missing or disabled
+fractions of the fixed-grid visibility estimate; ``"shadows"``: the shadow edges of the visibility gradient), or
+None when numba is missing or disabled
 (``TI_DISABLE_NUMBA=1``): callers then use their torch path. :func:`launch` runs one loop with
 ``torch.get_num_threads()`` threads.
 """
@@ -20,7 +21,8 @@ import torch
 
 __all__ = ["launch", "loops"]
 
-_MODULES = {"quadrature": "._numba_kernels", "pairs": "._numba_pairs", "visibility": "._numba_visibility"}
+_MODULES = {"quadrature": "._numba_kernels", "pairs": "._numba_pairs", "visibility": "._numba_visibility",
+            "shadows": "._numba_shadows"}
 
 #: One compiled launch at a time (numba's workqueue threading layer does not allow concurrent launches).
 _LAUNCH = threading.Lock()
@@ -28,8 +30,8 @@ _LAUNCH = threading.Lock()
 
 @cache
 def loops(stage: str = "quadrature") -> ModuleType | None:
-    """The numba module of ``stage`` (``"quadrature"``, ``"pairs"`` or ``"visibility"``), or None when numba is
-    missing or disabled (``TI_DISABLE_NUMBA=1``)."""
+    """The numba module of ``stage`` (``"quadrature"``, ``"pairs"``, ``"visibility"`` or ``"shadows"``), or None
+    when numba is missing or disabled (``TI_DISABLE_NUMBA=1``)."""
     if stage not in _MODULES:
         raise ValueError(f"stage must be one of {sorted(_MODULES)}; got {stage!r}")
     if os.environ.get("TI_DISABLE_NUMBA", "") not in ("", "0"):

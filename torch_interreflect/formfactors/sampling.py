@@ -19,11 +19,11 @@ R2_STEP = (0.7548776662466927, 0.5698402909980532)
 KRONECKER_STEP = (0.41421356237309515, 0.7320508075688772)
 
 
-def check_sample_count(value: Any, name: str) -> None:
-    """Raise :class:`~torch_interreflect.errors.ValueRangeError` unless ``value`` is an integer ≥ 1 (a number of
-    samples per axis)."""
-    if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-        raise ValueRangeError(f"{name} must be an integer >= 1; got {value!r}")
+def check_sample_count(value: Any, name: str, minimum: int = 1) -> None:
+    """Raise :class:`~torch_interreflect.errors.ValueRangeError` unless ``value`` is an integer ≥ ``minimum`` (a
+    number of samples)."""
+    if isinstance(value, bool) or not isinstance(value, int) or value < minimum:
+        raise ValueRangeError(f"{name} must be an integer >= {minimum}; got {value!r}")
 
 
 def pair_seeds(dom: Tensor, tgt: Tensor) -> Tensor:

@@ -2,11 +2,11 @@
 from quadrature points by Embree rays.
 
 **Gradients.** Visibility is computed on detached geometry: the visible fraction of a pair at a quadrature point
-is a constant of the geometry for autograd. Form factors of occluded pairs, ``∫ f(x) vis(x) dA_x``, then carry the
-*interior* part of the derivative (the unoccluded point-to-polygon factor ``f`` and the domain's Jacobian move with
-the corners; ``vis`` does not), and miss the *boundary* term: how the visible fraction changes as silhouette
-edges (of blockers, or of the pair itself seen past a blocker) move. A blocker's corners get no gradient at all
-through ``F``. ``tests/formfactors/test_geometry_grad.py`` measures the bias on a moving blocker and on a W fold.
+is a constant of the geometry for autograd, so autograd through the quadrature gives ``∂f · vis`` (the unoccluded
+point-to-polygon factor ``f`` and the domain's Jacobian move with the corners; ``vis`` does not). What that misses,
+the shadow edges moving (the boundary term) and the interior term's spread over the visible part, is added by
+:mod:`.visibility_grad` when the corners require grad (``form_factors(visibility_grad_points=)``).
+``tests/formfactors/test_geometry_grad.py`` measures both on a moving blocker and a W fold.
 """
 
 from __future__ import annotations
