@@ -6,8 +6,9 @@ Irradiance is in W·m⁻²·nm⁻¹; spectra are on the caller's wavelength grid
 where the geometry enters smoothly:
 
 - :func:`directional`: the cosine factor ``max(0, n_i·(−d))`` passes gradients to the light direction ``d`` and
-  to the scene's corners (through the normals). The lit fraction (shadows, ray cast) is a constant of the
-  geometry: a shadow edge sweeping over a facet as the sun or a blocker moves (the boundary term) is not included.
+  to the scene's corners (through the normals). The lit fraction is ray cast (a constant for autograd); a shadow
+  edge sweeping over a facet as the light, a blocker or the facet moves is added by edge sampling
+  (:func:`sun_shadow_gradient`, zero in value).
 - :func:`sky`: ``π L (1 − Σ_j F_ij)`` is differentiable through ``F`` (so to the corners, exactly for unoccluded
   rows: see :func:`torch_interreflect.form_factors`). The back-face coverage ``b_i`` and the ray-cast open
   fraction of facets with occluded pairs are constants of the geometry.
@@ -36,6 +37,7 @@ import warnings
 from collections.abc import Sequence
 from typing import Literal
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -44,6 +46,8 @@ from .errors import ShapeError, ValueRangeError
 from .formfactors.hemisphere import hemisphere_fractions
 from .formfactors.operator import FormFactorOperator
 from .formfactors.sampling import check_sample_count
+from .formfactors.visibility_grad import candidate_edges
+from .geometry._polygon import bilinear, clip_interval, facing_any, plane_eps, quad_coordinates
 from .geometry.raycast import RayCaster
 from .geometry.scene import Scene
 
@@ -66,6 +70,16 @@ def _check_spd(spd: Tensor, name: str) -> Tensor:
     if bool((spd < 0).any()):
         raise ValueRangeError(f"{name} must be non-negative; got min {float(spd.min()):.4g}")
     return spd
+
+
+def _shadowed_candidates(scene: Scene, direction: Tensor, shadows: Literal["auto"] | bool) -> Tensor:
+    """Lit facets (int64 ``[K]``) that cast shadow rays: with ``shadows="auto"`` only those with another facet in
+    front of them."""
+    d = torch.as_tensor(direction, dtype=torch.float64).detach().cpu().reshape(-1)
+    lit = -(_detached_cpu(scene).normals @ (d / d.norm())) > 0
+    if shadows == "auto":
+        lit = lit & facing_any(scene)
+    return torch.nonzero(lit).reshape(-1)
 
 
 @renamed_keywords(samples="shadow_samples")
@@ -100,12 +114,7 @@ def lit_fraction(
     frac = (cos > 0).to(torch.float64)
     if shadows is False:
         return frac.to(scene.dtype).to(scene.device)
-    from .geometry._polygon import bilinear, facing_any
-
-    lit = cos > 0
-    if shadows == "auto":
-        lit = lit & facing_any(scene)
-    idx = torch.nonzero(lit).reshape(-1)
+    idx = _shadowed_candidates(scene, d, shadows)
     if idx.numel():
         from .geometry.raycast import RayCaster
 
@@ -117,6 +126,95 @@ def lit_fraction(
         free = torch.from_numpy(hit < 0).reshape(jac.shape).to(torch.float64)
         frac[idx] = (free * jac).sum(1) / jac.sum(1)
     return frac.to(scene.dtype).to(scene.device)
+
+
+def sun_shadow_gradient(scene: Scene, direction: Tensor, facets: Tensor, *, edge_order: int = 4) -> Tensor:
+    """Zero-valued lit fractions ``[F]`` whose gradient is the motion of the shadow edges on ``facets``.
+
+    :func:`lit_fraction` is ray cast on detached geometry. When a blocker, a facet or the light direction moves,
+    the shadow a blocker casts on a facet moves, and the facet's lit area changes by ``− ∮_Γ (u · n) dl`` over the
+    shadow's edge ``Γ`` on the facet (``n``: its unit normal in the facet's plane pointing into the lit part,
+    ``u``: its velocity relative to the facet's own points). ``Γ`` is found as in
+    :mod:`~torch_interreflect.formfactors.visibility_grad`: boundary and crease edges of the mesh (its
+    :func:`~torch_interreflect.formfactors.visibility_grad.candidate_edges`), the part in front of the facet,
+    projected along the light onto its plane and clipped to it, ``edge_order`` Gauss points per part, kept where a
+    ray toward the light is blocked on exactly one side. The term is added with value zero (edge sampling).
+
+    Args:
+        scene: The scene (its corners may require grad).
+        direction: Direction the light travels, ``[3]`` (may require grad).
+        facets: The lit facets that something could shadow (int64 ``[K]``).
+        edge_order: Gauss points per projected edge.
+
+    Shape:
+        - output: ``[F]`` (zeros), float64 on the CPU
+    """
+    sc = scene.to(torch.float64).to("cpu")
+    corners, normals_g = sc.corners, sc.normals
+    cd, normals = corners.detach(), normals_g.detach()
+    d_g = torch.as_tensor(direction).to(torch.float64).cpu().reshape(3)
+    d_g = d_g / d_g.norm()
+    d = d_g.detach()
+    out = corners.new_zeros(sc.num_facets) + 0 * d_g.sum()
+    eps = plane_eps(sc)
+    facet, corner = candidate_edges(sc, eps)
+    if facet.numel() == 0 or facets.numel() == 0:
+        return out
+    e0, e1 = cd[facet, corner], cd[facet, (corner + 1) % 4]
+    f, e = (t.reshape(-1) for t in torch.meshgrid(facets, torch.arange(facet.numel()), indexing="ij"))
+    n, o = normals[f], cd[f, 0]
+    h0, h1 = ((e0[e] - o) * n).sum(-1), ((e1[e] - o) * n).sum(-1)
+    sa, sb = clip_interval(torch.zeros_like(h0), torch.ones_like(h0), h0 - eps, h1 - h0)  # in front of the facet
+    keep = sb > sa
+    f, e, n, o, sa, sb = f[keep], e[keep], n[keep], o[keep], sa[keep], sb[keep]
+    dn = n @ d  # < 0 on lit facets
+
+    def project(s: Tensor) -> Tensor:
+        b = e0[e] + s[:, None] * (e1[e] - e0[e])
+        return b - (((b - o) * n).sum(-1) / dn)[:, None] * d
+
+    ya, yb = project(sa), project(sb)
+    la, lb = torch.zeros_like(sa), torch.ones_like(sa)
+    for k in range(4):  # clip the projection to the facet
+        c0, c1 = cd[f, k], cd[f, (k + 1) % 4]
+        inward = torch.linalg.cross(n, c1 - c0, dim=-1)
+        fa = ((ya - c0) * inward).sum(-1)
+        la, lb = clip_interval(la, lb, fa, ((yb - c0) * inward).sum(-1) - fa)
+    seg = yb - ya
+    length = seg.norm(dim=-1)
+    keep = (lb - la) * length > eps
+    f, e, n, sa, sb, la, lb, ya, seg, length = (t[keep] for t in (f, e, n, sa, sb, la, lb, ya, seg, length))
+    if f.numel() == 0:
+        return out
+    t, w = np.polynomial.legendre.leggauss(edge_order)
+    t, w = torch.tensor((t + 1) / 2), torch.tensor(w / 2)
+    lam = (la[:, None] + (lb - la)[:, None] * t).reshape(-1)
+    ell = ((lb - la)[:, None] * w * length[:, None]).reshape(-1)
+    f, e, n, sa, sb, ya, seg, length = (z.repeat_interleave(edge_order, 0)
+                                        for z in (f, e, n, sa, sb, ya, seg, length))
+    y = ya + lam[:, None] * seg
+    s = sa + lam * (sb - sa)  # parallel projection: the edge parameter is affine in λ
+    side = torch.linalg.cross(n, seg / length[:, None], dim=-1)
+    off = 1e-4 * sc.areas.detach()[f].sqrt()[:, None] * side
+    caster = RayCaster(Scene.from_parts(cd, sc.is_triangle, sc.material, sc.material_names))
+    towards = (-d).expand(y.shape[0], 3).numpy()
+    plus = torch.from_numpy(caster.first_hit((y + off).numpy(), towards) >= 0)
+    minus = torch.from_numpy(caster.first_hit((y - off).numpy(), towards) >= 0)
+    edge = plus != minus
+    if not bool(edge.any()):
+        return out
+    sign = torch.where(minus, 1.0, -1.0).to(torch.float64)[edge]  # n_in = sign · side points into the lit part
+    f, e, s, y, side, ell = (z[edge] for z in (f, e, s, y, side, ell))
+    # the differentiable positions: the shadow point, and the facet's own point under it
+    g0, g1 = corners[facet[e], corner[e]], corners[facet[e], (corner[e] + 1) % 4]
+    b = g0 + s[:, None] * (g1 - g0)
+    ng, og = normals_g[f], corners[f, 0]
+    yg = b - (((b - og) * ng).sum(-1) / (ng * d_g).sum(-1))[:, None] * d_g
+    u, v = quad_coordinates(cd[f], y)
+    ym, _ = bilinear(corners[f], u[:, None], v[:, None])
+    move = (yg - yg.detach()) - (ym[:, 0] - ym[:, 0].detach())
+    lit_area = -ell * sign * (side * move).sum(-1)
+    return out.index_add(0, f, lit_area / sc.areas.detach()[f])
 
 
 @renamed_keywords(samples="shadow_samples")
@@ -133,7 +231,7 @@ def directional(
     Args:
         scene: The scene.
         direction: Direction the light travels, shape ``[3]`` (need not be unit length). Differentiable (with the
-            scene's corners) through the cosine factor; the lit fraction is a constant (module docstring).
+            scene's corners) through the cosine factor and the shadows' edges (:func:`sun_shadow_gradient`).
         spd: Spectral irradiance on a plane facing the light, W·m⁻²·nm⁻¹, shape ``[..., L]``.
         shadows: See :func:`lit_fraction`.
         shadow_samples: Shadow rays per direction on each facet (formerly ``samples``).
@@ -159,6 +257,10 @@ def directional(
     if d.numel() != 3:
         raise ShapeError(f"direction must have 3 components; got shape {list(d.shape)}")
     lit = lit_fraction(scene, d, shadows=shadows, shadow_samples=shadow_samples).to(spd.dtype).to(spd.device)
+    if shadows is not False and torch.is_grad_enabled() and (scene.corners.requires_grad or d.requires_grad):
+        # the shadows' edges moving with the geometry and the direction: zero in value (sun_shadow_gradient)
+        facets = _shadowed_candidates(scene, d, shadows)
+        lit = lit + sun_shadow_gradient(scene, d, facets).to(spd.dtype).to(spd.device)
     dn = d.reshape(3).to(spd.dtype).to(spd.device)
     dn = dn / dn.norm()
     cos = (-(scene.normals.to(spd.dtype).to(spd.device) @ dn)).clamp_min(0)

@@ -1,7 +1,7 @@
 """Compiled CPU loop (numba) of the visibility gradient's shadow edges (internal; see :mod:`.visibility_grad`):
 for (pair, edge) combinations and domain points, the part of the edge between the point and the target's plane,
 projected from the point onto that plane and clipped to the target. The same maths as the torch path of
-:func:`.visibility_grad._samples`, without its ``[M, Q]`` temporaries.
+:func:`.visibility_grad.shadow_spans`, without its ``[M, Q]`` temporaries.
 """
 
 from __future__ import annotations

@@ -46,7 +46,7 @@ import torch
 from torch import Tensor
 from torch.utils.checkpoint import checkpoint
 
-from ..geometry._polygon import bilinear
+from ..geometry._polygon import bilinear, clip_interval, quad_coordinates
 from ..geometry.scene import Scene
 from .compiled import launch, loops
 from .sampling import R2_STEP
@@ -95,16 +95,6 @@ def candidate_edges(sc: Scene, eps: float) -> tuple[Tensor, Tensor]:
     _, pick = np.unique(group[idx].numpy(), return_index=True)  # one facet per edge
     idx = idx[torch.as_tensor(pick)]
     return facet[idx], corner[idx]
-
-
-def _clip_interval(lo: Tensor, hi: Tensor, a: Tensor, b: Tensor) -> tuple[Tensor, Tensor]:
-    """Intersect ``[lo, hi]`` with ``{s : a + s b >= 0}`` (broadcast)."""
-    safe = torch.where(b == 0, torch.ones_like(b), b)
-    root = -a / safe
-    lo = torch.where(b > 0, torch.maximum(lo, root), lo)
-    hi = torch.where(b < 0, torch.minimum(hi, root), hi)
-    hi = torch.where((b == 0) & (a < 0), torch.full_like(hi, -1.0), hi)
-    return lo, hi
 
 
 def _gauss01(n: int, dtype: torch.dtype) -> tuple[Tensor, Tensor]:
@@ -195,27 +185,6 @@ def _interior_chunk(corners: Tensor, normals: Tensor, a: Tensor, b: Tensor, uq: 
     xg, _ = bilinear(corners[a], uq, vq)  # [R, 1, 3]
     yg, jyg = bilinear(corners[b], uc, vc)  # [R, C, 3]
     return (_kernel(xg, normals[a][:, None], yg, normals[b][:, None]) * jyg * weight).sum(-1)
-
-
-def _quad_coordinates(quads: Tensor, y: Tensor, iterations: int = 4) -> tuple[Tensor, Tensor]:
-    """Unit-square coordinates ``(u, v)`` ``[n]`` of points ``y [n, 3]`` on planar quads ``[n, 4, 3]`` (the inverse
-    of :func:`~torch_interreflect.geometry._polygon.bilinear`): Gauss–Newton with closed-form 2 × 2 normal
-    equations from ``u = v = 1/2`` (exact for parallelograms after one step). Not differentiated."""
-    c0, c1, c2, c3 = quads.unbind(1)
-    u = torch.full_like(y[:, 0], 0.5)
-    v = torch.full_like(u, 0.5)
-    for _ in range(iterations):
-        uu, vv = u[:, None], v[:, None]
-        x = (1 - uu) * (1 - vv) * c0 + uu * (1 - vv) * c1 + uu * vv * c2 + (1 - uu) * vv * c3
-        du = (1 - vv) * (c1 - c0) + vv * (c2 - c3)
-        dv = (1 - uu) * (c3 - c0) + uu * (c2 - c1)
-        r = y - x
-        a, bb, cc = (du * du).sum(-1), (du * dv).sum(-1), (dv * dv).sum(-1)
-        f, g = (du * r).sum(-1), (dv * r).sum(-1)
-        det = (a * cc - bb * bb).clamp_min(1e-300)
-        u = u + (cc * f - bb * g) / det
-        v = v + (a * g - bb * f) / det
-    return u, v
 
 
 def _kernel(x: Tensor, nx: Tensor, y: Tensor, ny: Tensor) -> Tensor:
@@ -319,7 +288,7 @@ def boundary_values(sc: Scene, dom: Tensor, tgt: Tensor, caster: Any, rule: tupl
     Dg = ((xg - ojg) * njg).sum(-1)
     dg = ((bg - ojg) * njg).sum(-1)
     yg = xg + (bg - xg) * (Dg / (Dg - dg))[:, None]
-    u, v = _quad_coordinates(cd[b], y)
+    u, v = quad_coordinates(cd[b], y)
     ym, _ = bilinear(corners[b], u[:, None], v[:, None])
     ym = ym[:, 0]
     move = (yg - yg.detach()) - (ym - ym.detach())
@@ -383,9 +352,9 @@ def _samples(cd: Tensor, normals: Tensor, p: Tensor, ed: Tensor, a: Tensor, b: T
     h1 = ((E1 - x) * nx).sum(-1)
     lo = torch.zeros_like(h0)
     hi = torch.ones_like(h0)
-    lo, hi = _clip_interval(lo, hi, d0 - eps, d1 - d0)  # in front of the target's plane
-    lo, hi = _clip_interval(lo, hi, D - eps - d0, d0 - d1)  # behind the point
-    lo, hi = _clip_interval(lo, hi, h0 - eps, h1 - h0)  # in front of the point's plane
+    lo, hi = clip_interval(lo, hi, d0 - eps, d1 - d0)  # in front of the target's plane
+    lo, hi = clip_interval(lo, hi, D - eps - d0, d0 - d1)  # behind the point
+    lo, hi = clip_interval(lo, hi, h0 - eps, h1 - h0)  # in front of the point's plane
     mc, qc = torch.nonzero(hi > lo, as_tuple=True)
     sa, sb = lo[mc, qc], hi[mc, qc]
     pc, ec = p[mc], ed[mc]
@@ -406,6 +375,6 @@ def _samples(cd: Tensor, normals: Tensor, p: Tensor, ed: Tensor, a: Tensor, b: T
         inward = torch.linalg.cross(njs, c1 - c0, dim=-1)
         fa = ((ya - c0) * inward).sum(-1)
         fb = ((yb - c0) * inward).sum(-1)
-        la, lb = _clip_interval(la, lb, fa, fb - fa)
+        la, lb = clip_interval(la, lb, fa, fb - fa)
     keep = (lb - la) * (yb - ya).norm(dim=-1) > eps
     return pc[keep], qc[keep], ec[keep], sa[keep], sb[keep], la[keep], lb[keep]

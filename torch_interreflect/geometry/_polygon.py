@@ -15,6 +15,7 @@ from .scene import Scene
 
 __all__ = [
     "bilinear",
+    "clip_interval",
     "clip_polygons",
     "compact_polygons",
     "facet_samples",
@@ -23,6 +24,7 @@ __all__ = [
     "facing_others",
     "plane_eps",
     "plane_groups",
+    "quad_coordinates",
     "rotate_to_plane_edge",
     "signed_distances",
     "tangent_frame",
@@ -217,3 +219,34 @@ def facet_samples(corners: Tensor, n: int) -> tuple[Tensor, Tensor]:
     v = g.repeat(n)
     x, jac = bilinear(corners, u, v)
     return x, jac / (n * n)
+
+
+def clip_interval(lo: Tensor, hi: Tensor, a: Tensor, b: Tensor) -> tuple[Tensor, Tensor]:
+    """Intersect ``[lo, hi]`` with ``{s : a + s b >= 0}`` (broadcast)."""
+    safe = torch.where(b == 0, torch.ones_like(b), b)
+    root = -a / safe
+    lo = torch.where(b > 0, torch.maximum(lo, root), lo)
+    hi = torch.where(b < 0, torch.minimum(hi, root), hi)
+    hi = torch.where((b == 0) & (a < 0), torch.full_like(hi, -1.0), hi)
+    return lo, hi
+
+
+def quad_coordinates(quads: Tensor, y: Tensor, iterations: int = 4) -> tuple[Tensor, Tensor]:
+    """Unit-square coordinates ``(u, v)`` ``[n]`` of points ``y [n, 3]`` on planar quads ``[n, 4, 3]`` (the inverse
+    of :func:`bilinear`): Gauss–Newton with closed-form 2 × 2 normal
+    equations from ``u = v = 1/2`` (exact for parallelograms after one step). Not differentiated."""
+    c0, c1, c2, c3 = quads.unbind(1)
+    u = torch.full_like(y[:, 0], 0.5)
+    v = torch.full_like(u, 0.5)
+    for _ in range(iterations):
+        uu, vv = u[:, None], v[:, None]
+        x = (1 - uu) * (1 - vv) * c0 + uu * (1 - vv) * c1 + uu * vv * c2 + (1 - uu) * vv * c3
+        du = (1 - vv) * (c1 - c0) + vv * (c2 - c3)
+        dv = (1 - uu) * (c3 - c0) + uu * (c2 - c1)
+        r = y - x
+        a, bb, cc = (du * du).sum(-1), (du * dv).sum(-1), (dv * dv).sum(-1)
+        f, g = (du * r).sum(-1), (dv * r).sum(-1)
+        det = (a * cc - bb * bb).clamp_min(1e-300)
+        u = u + (cc * f - bb * g) / det
+        v = v + (a * g - bb * f) / det
+    return u, v
