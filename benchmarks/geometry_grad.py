@@ -27,6 +27,8 @@ SCENES = {
     "V-groove 60°": ("ti.scenes.v_groove(a, divisions=35)", "{}"),
     "V-groove 60°, quadrature_tol=1e-8": ("ti.scenes.v_groove(a, divisions=20)", "{'quadrature_tol': 1e-8}"),
     "W fold 45° (occluded)": ("ti.scenes.w_shape(a, divisions=(10, 30, 10))", "{}"),
+    "W fold 45° (occluded), visibility_grad_points=0": ("ti.scenes.w_shape(a, divisions=(10, 30, 10))",
+                                                        "{'visibility_grad_points': 0}"),
 }
 
 _CHILD = r"""

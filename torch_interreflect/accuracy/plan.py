@@ -113,10 +113,12 @@ class Plan:
             To ``reflectance`` and ``illuminant``; and, when the plan's scene was built from corners that require
             grad (or the light is a direction that requires grad), to those: the leaves follow their user facets
             (:meth:`for_geometry`) and the form factors, light factor and areas carry the gradient of the moved
-            leaves while their values stay the plan's. What :func:`~torch_interreflect.form_factors` leaves out is
-            left out here (the derivative of ray-cast visibility), and with a ``view`` the image's per-pixel kernel
-            (including the sun's per-pixel cosines) is held fixed (a :class:`~torch_interreflect.errors.GradientWarning`
-            says so). Memory grows with the leaves' pairs (the form factors are rebuilt densely).
+            leaves while their values stay the plan's. Ray-cast visibility and sun shadows carry the gradient of
+            their moving shadow edges as in :func:`~torch_interreflect.form_factors` and
+            :func:`~torch_interreflect.lights.directional`; the sky's ray-cast open fraction does not. With a
+            ``view`` the image's per-pixel kernel (including the sun's per-pixel cosines) is held fixed (a
+            :class:`~torch_interreflect.errors.GradientWarning` says so). Memory grows with the leaves' pairs (the
+            form factors are rebuilt densely).
 
         Shape:
             - reflectance: ``[..., F, L]`` or ``[..., F]``; illuminant: ``[..., L]``
