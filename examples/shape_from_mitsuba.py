@@ -16,8 +16,9 @@ sun's cosines and the solver's adjoint. Fitted by L-BFGS on the relative squared
   infinite fit (:meth:`~torch_interreflect.accuracy.Plan.for_geometry` moves them with the shape), fitted again.
   (The W fold needs ~10,000 leaves for 3e-3, about a minute per evaluation here, so it has no refined row.)
 
-On the W fold the ridge occludes: the visible fractions are constants of the geometry (their derivative is not
-included), which the fit tolerates. Prints recovered against true values.
+On the W fold the ridge occludes: the visible fractions and the sun's shadows are ray cast, and their gradient
+comes from their moving shadow edges (``form_factors(visibility_grad_points=)``,
+:func:`torch_interreflect.lights.sun_shadow_gradient`). Prints recovered against true values.
 
     python examples/shape_from_mitsuba.py
 """

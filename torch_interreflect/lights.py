@@ -10,8 +10,9 @@ where the geometry enters smoothly:
   edge sweeping over a facet as the light, a blocker or the facet moves is added by edge sampling
   (:func:`sun_shadow_gradient`, zero in value).
 - :func:`sky`: ``π L (1 − Σ_j F_ij)`` is differentiable through ``F`` (so to the corners, exactly for unoccluded
-  rows: see :func:`torch_interreflect.form_factors`). The back-face coverage ``b_i`` and the ray-cast open
-  fraction of facets with occluded pairs are constants of the geometry.
+  rows, and with the shadow terms of :func:`torch_interreflect.form_factors` for occluded ones). Where the open
+  part is counted by rays (facets with occluded pairs), its value is the count and its gradient that of
+  ``1 − Σ_j F_ij``. The back-face coverage ``b_i`` is a constant of the geometry.
 - area lights: ``π Σ_{j ∈ light} F_ij`` is differentiable through ``F``.
 - :func:`light_geometry` keeps these gradients (a given factor ``g [F]`` is taken as a constant).
 
@@ -329,8 +330,11 @@ def sky(
         back_idx = torch.nonzero(maybe_back & ~approx).reshape(-1)
         caster = RayCaster(sc) if escape_idx.numel() or back_idx.numel() else None  # one BVH for both passes
         if escape_idx.numel():
+            # the escaping rays' count as the value, the gradient of 1 − Σ_j F_ij (which carries the moving shadow
+            # edges of its occluded pairs, see form_factors) as its derivative
+            from_f = open_part[escape_idx]
             open_part[escape_idx] = hemisphere_fractions(sc, escape_idx, samples=sky_samples, points=8, back=False,
-                                                         caster=caster)[0]
+                                                         caster=caster)[0] + (from_f - from_f.detach())
         if back_idx.numel():
             open_part[back_idx] = open_part[back_idx] - hemisphere_fractions(
                 sc, back_idx, samples=sky_samples, points=8, escape=False, caster=caster)[1]
