@@ -187,6 +187,13 @@ def _interior_chunk(corners: Tensor, normals: Tensor, a: Tensor, b: Tensor, uq: 
     return (_kernel(xg, normals[a][:, None], yg, normals[b][:, None]) * jyg * weight).sum(-1)
 
 
+def _project(x: Tensor, b: Tensor, o: Tensor, n: Tensor) -> Tensor:
+    """Central projection ``[n, 3]`` from points ``x`` through points ``b`` onto the planes ``(o, n)`` (all
+    ``[n, 3]``; ``b`` strictly between ``x`` and its plane)."""
+    D = ((x - o) * n).sum(-1)
+    return x + (b - x) * (D / (D - ((b - o) * n).sum(-1)))[:, None]
+
+
 def _kernel(x: Tensor, nx: Tensor, y: Tensor, ny: Tensor) -> Tensor:
     """``cos θ_x cos θ_y / (π |x − y|²)`` (broadcast; 1/m²)."""
     r = y - x
@@ -248,13 +255,7 @@ def boundary_values(sc: Scene, dom: Tensor, tgt: Tensor, caster: Any, rule: tupl
     x, jac = x[:, 0], jac[:, 0]
     nj, oj = normals[b], cd[b, 0]
     D = ((x - oj) * nj).sum(-1)
-
-    def project(par: Tensor) -> Tensor:
-        pt = e0[e] + par[:, None] * (e1[e] - e0[e])
-        d = ((pt - oj) * nj).sum(-1)
-        return x + (pt - x) * (D / (D - d))[:, None]
-
-    ya, yb = project(sa), project(sb)
+    ya, yb = (_project(x, e0[e] + t[:, None] * (e1[e] - e0[e]), oj, nj) for t in (sa, sb))
     ga = D - ((e0[e] + sa[:, None] * (e1[e] - e0[e]) - oj) * nj).sum(-1)
     gb = D - ((e0[e] + sb[:, None] * (e1[e] - e0[e]) - oj) * nj).sum(-1)
     sigma = lam * ga / (lam * ga + (1 - lam) * gb)
@@ -285,9 +286,7 @@ def boundary_values(sc: Scene, dom: Tensor, tgt: Tensor, caster: Any, rule: tupl
     g1 = corners[facet[e], (corner[e] + 1) % 4]
     bg = g0 + par[:, None] * (g1 - g0)
     njg, ojg = sc.normals[b], corners[b, 0]
-    Dg = ((xg - ojg) * njg).sum(-1)
-    dg = ((bg - ojg) * njg).sum(-1)
-    yg = xg + (bg - xg) * (Dg / (Dg - dg))[:, None]
+    yg = _project(xg, bg, ojg, njg)
     u, v = quad_coordinates(cd[b], y)
     ym, _ = bilinear(corners[b], u[:, None], v[:, None])
     ym = ym[:, 0]
@@ -360,14 +359,7 @@ def _samples(cd: Tensor, normals: Tensor, p: Tensor, ed: Tensor, a: Tensor, b: T
     pc, ec = p[mc], ed[mc]
     xs = x[mc, qc]
     njs, ojs = normals[b[mc]], cd[b[mc], 0]
-    Ds = ((xs - ojs) * njs).sum(-1)
-
-    def project(par: Tensor) -> Tensor:
-        pt = e0[ec] + par[:, None] * (e1[ec] - e0[ec])
-        d = ((pt - ojs) * njs).sum(-1)
-        return xs + (pt - xs) * (Ds / (Ds - d))[:, None]
-
-    ya, yb = project(sa), project(sb)
+    ya, yb = (_project(xs, e0[ec] + t[:, None] * (e1[ec] - e0[ec]), ojs, njs) for t in (sa, sb))
     la, lb = torch.zeros_like(sa), torch.ones_like(sa)
     poly = cd[b[mc]]  # [n, 4, 3]
     for kk in range(4):
