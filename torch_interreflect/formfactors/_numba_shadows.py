@@ -32,11 +32,11 @@ def edge_spans(corners, normals, uq, vq, pe, ee, dom, tgt, e0, e1, eps, sa, sb, 
     and ``[la, lb]``, the part of that part's projection (from the point onto the target's plane) inside the target
     quad; ``ok`` where it is longer than ``eps``.
 
-    corners ``[F, 4, 3]``, normals ``[F, 3]``, uq/vq ``[Q]``, pe/ee ``[M]``, dom/tgt ``[P]``, e0/e1 ``[E, 3]``;
+    corners ``[F, 4, 3]``, normals ``[F, 3]``, uq/vq ``[P, Q]``, pe/ee ``[M]``, dom/tgt ``[P]``, e0/e1 ``[E, 3]``;
     outputs ``[M, Q]``.
     """
     M = pe.shape[0]
-    Q = uq.shape[0]
+    Q = uq.shape[1]
     for m in prange(M):
         p = pe[m]
         a = dom[p]
@@ -44,7 +44,7 @@ def edge_spans(corners, normals, uq, vq, pe, ee, dom, tgt, e0, e1, eps, sa, sb, 
         e = ee[m]
         for q in range(Q):
             ok[m, q] = False
-            x0, x1, x2, _, _, _, _, _, _ = bilinear_map(corners[a], uq[q], vq[q])
+            x0, x1, x2, _, _, _, _, _, _ = bilinear_map(corners[a], uq[p, q], vq[p, q])
             n0, n1, n2 = normals[b, 0], normals[b, 1], normals[b, 2]
             o0, o1, o2 = corners[b, 0, 0], corners[b, 0, 1], corners[b, 0, 2]
             D = (x0 - o0) * n0 + (x1 - o1) * n1 + (x2 - o2) * n2

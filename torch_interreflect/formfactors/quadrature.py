@@ -146,9 +146,9 @@ def form_factors(
         (``backend="torch"``) agree to rounding (2e-15 relative); the adjoint keeps O(pairs) memory and gives first
         derivatives only. Occluded pairs: ray-cast visibility is constant for autograd, and the shadow terms are
         added by edge sampling (``visibility_grad_points``, :mod:`~torch_interreflect.formfactors.visibility_grad`):
-        on a W fold whose ridge occludes, the heights' derivatives are 1.5–3.5 % from fitted differences (53–76 %
-        without them); on one large plate behind a moving blocker, 0.5 % / 0.06 % from the exact derivatives at
-        ``visibility_grad_points=256`` (38 % / 2 % at the default 32: large facets need more points), where they
+        on a W fold whose ridge occludes, the heights' derivatives are 0.2–3.5 % from fitted differences (53–76 %
+        without them); on one large plate behind a moving blocker, 1.9 % / 0.3 % from the exact derivatives at
+        ``visibility_grad_points=1024`` (36 % / 1 % at the default 32: large facets need more points), where they
         were 0 (blocker moving sideways) and 10 % off (plate moving) without them. Not included:
         ``method="monte_carlo"`` (no gradient). ``areas`` of the result are detached.
 
