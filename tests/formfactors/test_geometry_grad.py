@@ -438,3 +438,26 @@ def test_visibility_gradient_in_float32_matches_float64():
         (g,) = torch.autograd.grad(K.to_dense().sum(), inner)
         grads.append(float(g))
     assert abs(grads[0] - grads[1]) < 0.015 * abs(grads[1])
+
+
+def test_visibility_gradient_of_a_triangulated_blocker_equals_the_quad():
+    # the blocker cut into two triangles: their shared diagonal is coplanar (no shadow edge), the outline the same
+    def gradients(triangles: bool):
+        zero = torch.zeros((), dtype=F64)
+        shift = torch.tensor(0.1, dtype=F64, requires_grad=True)
+        floor = torch.tensor([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]], dtype=F64)
+        ceiling = torch.tensor([[0, 0, 1], [0, 1, 1], [1, 1, 1], [1, 0, 1]], dtype=F64)
+        blocker = torch.tensor([[0.3, 0.3, 0.5], [0.3, 0.7, 0.5], [0.7, 0.7, 0.5], [0.7, 0.3, 0.5]], dtype=F64)
+        blocker = blocker + torch.stack([shift, zero, zero])
+        plates = ti.Scene.from_polygons(torch.stack([floor, ceiling] if triangles else [floor, ceiling, blocker]))
+        scene = plates
+        if triangles:
+            tris = ti.Scene.from_polygons(torch.stack([blocker[[0, 1, 2]], blocker[[0, 2, 3]]]))
+            scene = ti.Scene.from_parts(torch.cat([plates.corners, tris.corners]),
+                                        torch.cat([plates.is_triangle, tris.is_triangle]),
+                                        torch.zeros(4, dtype=torch.int64), ["grey"])
+        K = ti.form_factors(scene, visibility_grad_points=64)
+        return torch.autograd.grad(K.to_dense()[0, 1], shift)[0]
+
+    quad, tri = gradients(False), gradients(True)
+    assert float(quad) > 0 and abs(float(tri - quad)) < 1e-12 * abs(float(quad))
