@@ -246,19 +246,20 @@ def boundary_values(sc: Scene, dom: Tensor, tgt: Tensor, caster: Any, rule: tupl
     p, q, e, sa, sb, la, lb = spans
     if p.numel() == 0:
         return out
-    # Gauss points on each clipped, projected segment
-    tl, wl = _gauss01(edge_order, cd.dtype)
-    p, q, e, sa, sb = (z.repeat_interleave(edge_order) for z in (p, q, e, sa, sb))
-    lam = (la[:, None] + (lb - la)[:, None] * tl).reshape(-1)
-    span = ((lb - la)[:, None] * wl).reshape(-1)
-    a, b = dom[p], tgt[p]
-    x, jac = bilinear(cd[a], uq[p, q][:, None], vq[p, q][:, None])
+    # per span: the domain point, the projected ends; then Gauss points on each clipped, projected segment
+    x, jac = bilinear(cd[dom[p]], uq[p, q][:, None], vq[p, q][:, None])
     x, jac = x[:, 0], jac[:, 0]
-    nj, oj = normals[b], cd[b, 0]
+    nj, oj = normals[tgt[p]], cd[tgt[p], 0]
     D = ((x - oj) * nj).sum(-1)
     ya, yb = (_project(x, e0[e] + t[:, None] * (e1[e] - e0[e]), oj, nj) for t in (sa, sb))
     ga = D - ((e0[e] + sa[:, None] * (e1[e] - e0[e]) - oj) * nj).sum(-1)
     gb = D - ((e0[e] + sb[:, None] * (e1[e] - e0[e]) - oj) * nj).sum(-1)
+    tl, wl = _gauss01(edge_order, cd.dtype)
+    lam = (la[:, None] + (lb - la)[:, None] * tl).reshape(-1)
+    span = ((lb - la)[:, None] * wl).reshape(-1)
+    p, q, e, sa, sb, x, jac, nj, ya, yb, ga, gb = (z.repeat_interleave(edge_order, 0)
+                                                   for z in (p, q, e, sa, sb, x, jac, nj, ya, yb, ga, gb))
+    a, b = dom[p], tgt[p]
     sigma = lam * ga / (lam * ga + (1 - lam) * gb)
     par = sa + sigma * (sb - sa)  # the edge parameter whose projection is the sample
     y = ya + lam[:, None] * (yb - ya)
