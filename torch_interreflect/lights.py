@@ -129,6 +129,10 @@ def lit_fraction(
     return frac.to(scene.dtype).to(scene.device)
 
 
+#: Cells per side for the lit facet's own stretching in :func:`sun_shadow_gradient`.
+_STRETCH_CELLS = 32
+
+
 def sun_shadow_gradient(scene: Scene, direction: Tensor, facets: Tensor, *, edge_order: int = 4) -> Tensor:
     """Zero-valued lit fractions ``[F]`` whose gradient is the motion of the shadow edges on ``facets``.
 
@@ -139,7 +143,9 @@ def sun_shadow_gradient(scene: Scene, direction: Tensor, facets: Tensor, *, edge
     :mod:`~torch_interreflect.formfactors.visibility_grad`: boundary and crease edges of the mesh (its
     :func:`~torch_interreflect.formfactors.visibility_grad.candidate_edges`), the part in front of the facet,
     projected along the light onto its plane and clipped to it, ``edge_order`` Gauss points per part, kept where a
-    ray toward the light is blocked on exactly one side. The term is added with value zero (edge sampling).
+    ray toward the light is blocked on exactly one side. The facet's own uneven stretching (a corner moving) changes
+    its lit share too: ``Σ_c dJ_c (V_c − lit) / A`` over 32 × 32 cells (zero for affine motion). Both are added
+    with value zero (edge sampling).
 
     Args:
         scene: The scene (its corners may require grad).
@@ -156,7 +162,18 @@ def sun_shadow_gradient(scene: Scene, direction: Tensor, facets: Tensor, *, edge
     d_g = torch.as_tensor(direction).to(torch.float64).cpu().reshape(3)
     d_g = d_g / d_g.norm()
     d = d_g.detach()
+    caster = RayCaster(Scene.from_parts(cd, sc.is_triangle, sc.material, sc.material_names))
     out = corners.new_zeros(sc.num_facets) + 0 * d_g.sum()
+    if facets.numel():
+        # the facet's own stretching: d lit = Σ_c dJ_c (V_c − lit) / A over m × m cells (0 for affine motion)
+        g = (torch.arange(_STRETCH_CELLS, dtype=torch.float64) + 0.5) / _STRETCH_CELLS
+        u, v = g.repeat_interleave(_STRETCH_CELLS), g.repeat(_STRETCH_CELLS)
+        x, jac = bilinear(cd[facets], u, v)
+        hit = caster.first_hit(x.reshape(-1, 3).numpy(), (-d).expand(x.shape[0] * x.shape[1], 3).numpy())
+        free = torch.from_numpy(hit < 0).reshape(jac.shape).to(torch.float64)
+        lit = (free * jac).sum(1, keepdim=True) / jac.sum(1, keepdim=True)
+        jac_g = bilinear(corners[facets], u, v)[1]
+        out = out.index_add(0, facets, ((jac_g - jac_g.detach()) * (free - lit)).sum(1) / jac.sum(1))
     eps = plane_eps(sc)
     facet, corner = candidate_edges(sc, eps)
     if facet.numel() == 0 or facets.numel() == 0:
@@ -197,7 +214,6 @@ def sun_shadow_gradient(scene: Scene, direction: Tensor, facets: Tensor, *, edge
     s = sa + lam * (sb - sa)  # parallel projection: the edge parameter is affine in λ
     side = torch.linalg.cross(n, seg / length[:, None], dim=-1)
     off = 1e-4 * sc.areas.detach()[f].sqrt()[:, None] * side
-    caster = RayCaster(Scene.from_parts(cd, sc.is_triangle, sc.material, sc.material_names))
     towards = (-d).expand(y.shape[0], 3).numpy()
     plus = torch.from_numpy(caster.first_hit((y + off).numpy(), towards) >= 0)
     minus = torch.from_numpy(caster.first_hit((y - off).numpy(), towards) >= 0)

@@ -461,3 +461,18 @@ def test_visibility_gradient_of_a_triangulated_blocker_equals_the_quad():
 
     quad, tri = gradients(False), gradients(True)
     assert float(quad) > 0 and abs(float(tri - quad)) < 1e-12 * abs(float(quad))
+
+
+def test_visibility_gradient_terms_leave_the_values_bit_for_bit():
+    # a closed box with a thin plate inside (occluded pairs everywhere): the same matrix with and without the terms
+    size = torch.tensor([1.0, 1.2, 0.9], dtype=F64, requires_grad=True)
+    box = ti.scenes.closed_box(size, divisions=2)
+    plate = torch.tensor([[0.3, 0.3, 0.4], [0.7, 0.3, 0.45], [0.7, 0.7, 0.45], [0.3, 0.7, 0.4]], dtype=F64)
+    corners = torch.cat([box.corners, torch.stack([plate, plate[[0, 3, 2, 1]]]) * size])
+    n = corners.shape[0]
+    scene = ti.Scene.from_parts(corners, torch.zeros(n, dtype=torch.bool), torch.zeros(n, dtype=torch.int64),
+                                ["grey"])
+    with_terms = ti.form_factors(scene)
+    assert with_terms.info["occluded_pairs"] > 0
+    without = ti.form_factors(scene, visibility_grad_points=0)
+    assert torch.equal(with_terms.to_dense().detach(), without.to_dense().detach())

@@ -185,7 +185,8 @@ def _interior_chunk(corners: Tensor, normals: Tensor, a: Tensor, b: Tensor, uq: 
     differentiable in ``corners`` and ``normals``)."""
     xg, _ = bilinear(corners[a], uq, vq)  # [R, 1, 3]
     yg, jyg = bilinear(corners[b], uc, vc)  # [R, C, 3]
-    return (_kernel(xg, normals[a][:, None], yg, normals[b][:, None]) * jyg * weight).sum(-1)
+    kag = _kernel(xg, normals[a][:, None], yg, normals[b][:, None]) * jyg
+    return ((kag - kag.detach()) * weight).sum(-1)  # exactly zero in value
 
 
 def _project(x: Tensor, b: Tensor, o: Tensor, n: Tensor) -> Tensor:
