@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import math
 
+import pytest
 import torch
 
 import torch_interreflect as ti
@@ -198,3 +199,15 @@ def test_sun_shadow_gradient_when_the_lit_facet_stretches_unevenly():
         (g,) = torch.autograd.grad(e0(delta, x0, y0), delta)
         # measured: 0.08000 (centred) and 0.07848 (off-centre, 32 × 32 cells: 1.9 %)
         assert abs(float(g) - 0.08) < tol * 0.08 + 1e-12
+
+
+def test_sun_shadow_gradient_rejects_bad_input():
+    scene = ti.scenes.w_shape(45.0, divisions=(1, 2, 1), dtype=F64)
+    with pytest.raises(ti.errors.ValueRangeError, match="direction"):
+        ti.lights.sun_shadow_gradient(scene, torch.zeros(3, dtype=F64), torch.arange(2))
+    with pytest.raises(ti.errors.ValueRangeError, match="direction"):
+        ti.lights.sun_shadow_gradient(scene, torch.tensor([1.0, float("nan"), -1.0]), torch.arange(2))
+    with pytest.raises(ti.errors.ShapeError, match="facets"):
+        ti.lights.sun_shadow_gradient(scene, torch.tensor([0.0, 0.0, -1.0]), torch.tensor([0.0, 1.0]))
+    with pytest.raises(ti.errors.ValueRangeError, match="facets"):
+        ti.lights.sun_shadow_gradient(scene, torch.tensor([0.0, 0.0, -1.0]), torch.tensor([0, scene.num_facets]))

@@ -153,13 +153,26 @@ def sun_shadow_gradient(scene: Scene, direction: Tensor, facets: Tensor, *, edge
         facets: The lit facets that something could shadow (int64 ``[K]``).
         edge_order: Gauss points per projected edge.
 
+    Raises:
+        ValueRangeError: ``direction`` is not a finite nonzero 3-vector, or a facet index is out of range.
+        ShapeError: ``facets`` is not a 1-D int64 tensor.
+
     Shape:
         - output: ``[F]`` (zeros), float64 on the CPU
     """
+    d_g = torch.as_tensor(direction).to(torch.float64).cpu()
+    if d_g.numel() != 3 or not bool(torch.isfinite(d_g).all()) or float(d_g.detach().norm()) == 0.0:
+        raise ValueRangeError(f"direction must be a finite nonzero 3-vector; got {d_g.detach().tolist()}")
+    facets = torch.as_tensor(facets)
+    if facets.ndim != 1 or facets.dtype != torch.int64:
+        raise ShapeError(f"facets must be int64 facet indices [K]; got shape {list(facets.shape)} ({facets.dtype})")
+    if facets.numel() and not (int(facets.min()) >= 0 and int(facets.max()) < scene.num_facets):
+        raise ValueRangeError(f"facets must lie in [0, {scene.num_facets}); got {int(facets.min())} to "
+                              f"{int(facets.max())}")
     sc = scene.to(torch.float64).to("cpu")
     corners, normals_g = sc.corners, sc.normals
     cd, normals = corners.detach(), normals_g.detach()
-    d_g = torch.as_tensor(direction).to(torch.float64).cpu().reshape(3)
+    d_g = d_g.reshape(3)
     d_g = d_g / d_g.norm()
     d = d_g.detach()
     caster = RayCaster(Scene.from_parts(cd, sc.is_triangle, sc.material, sc.material_names))
