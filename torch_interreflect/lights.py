@@ -48,7 +48,7 @@ from .formfactors.hemisphere import hemisphere_fractions
 from .formfactors.operator import FormFactorOperator
 from .formfactors.sampling import check_sample_count
 from .formfactors.visibility_grad import candidate_edges
-from .geometry._polygon import bilinear, clip_interval, facing_any, plane_eps, quad_coordinates
+from .geometry._polygon import bilinear, clip_interval, clip_segments, facing_any, plane_eps, quad_coordinates
 from .geometry.raycast import RayCaster
 from .geometry.scene import Scene
 
@@ -117,8 +117,6 @@ def lit_fraction(
         return frac.to(scene.dtype).to(scene.device)
     idx = _shadowed_candidates(scene, d, shadows)
     if idx.numel():
-        from .geometry.raycast import RayCaster
-
         n = int(shadow_samples)
         g = (torch.arange(n, dtype=torch.float64) + 0.5) / n
         x, jac = bilinear(sc.corners[idx], g.repeat_interleave(n), g.repeat(n))
@@ -205,12 +203,7 @@ def sun_shadow_gradient(scene: Scene, direction: Tensor, facets: Tensor, *, edge
         return b - (((b - o) * n).sum(-1) / dn)[:, None] * d
 
     ya, yb = project(sa), project(sb)
-    la, lb = torch.zeros_like(sa), torch.ones_like(sa)
-    for k in range(4):  # clip the projection to the facet
-        c0, c1 = cd[f, k], cd[f, (k + 1) % 4]
-        inward = torch.linalg.cross(n, c1 - c0, dim=-1)
-        fa = ((ya - c0) * inward).sum(-1)
-        la, lb = clip_interval(la, lb, fa, ((yb - c0) * inward).sum(-1) - fa)
+    la, lb = clip_segments(ya, yb, cd[f], n)  # the projection's part on the facet
     seg = yb - ya
     length = seg.norm(dim=-1)
     keep = (lb - la) * length > eps
@@ -344,8 +337,6 @@ def sky(
     check_sample_count(sky_samples, "sky_samples")
     open_part = 1.0 - form_factors.row_sums().to(torch.float64).cpu()  # keeps the gradient of F (module docstring)
     if backfaces is not False:
-        from .geometry._polygon import facing_any
-
         F = scene.num_facets
         # where rows of F rest on ray-cast visibility, 1 − Σ_j F_ij is a small difference of estimates: count the
         # escaping rays directly instead (both sides of every facet block the sky); elsewhere subtract the part of
@@ -390,8 +381,6 @@ def back_coverage(
     Returns:
         ``b [F]`` in [0, 1], float64 on the CPU.
     """
-    from .geometry._polygon import facing_any
-
     check_sample_count(sky_samples, "sky_samples")
     check_sample_count(points, "points")
     sc = _detached_cpu(scene)

@@ -46,7 +46,7 @@ import torch
 from torch import Tensor
 from torch.utils.checkpoint import checkpoint
 
-from ..geometry._polygon import bilinear, clip_interval, quad_coordinates
+from ..geometry._polygon import bilinear, clip_interval, clip_segments, quad_coordinates
 from ..geometry.scene import Scene
 from .compiled import launch, loops
 from .sampling import R2_STEP, pair_seeds
@@ -363,13 +363,6 @@ def _samples(cd: Tensor, normals: Tensor, p: Tensor, ed: Tensor, a: Tensor, b: T
     xs = x[mc, qc]
     njs, ojs = normals[b[mc]], cd[b[mc], 0]
     ya, yb = (_project(xs, e0[ec] + t[:, None] * (e1[ec] - e0[ec]), ojs, njs) for t in (sa, sb))
-    la, lb = torch.zeros_like(sa), torch.ones_like(sa)
-    poly = cd[b[mc]]  # [n, 4, 3]
-    for kk in range(4):
-        c0, c1 = poly[:, kk], poly[:, (kk + 1) % 4]
-        inward = torch.linalg.cross(njs, c1 - c0, dim=-1)
-        fa = ((ya - c0) * inward).sum(-1)
-        fb = ((yb - c0) * inward).sum(-1)
-        la, lb = clip_interval(la, lb, fa, fb - fa)
+    la, lb = clip_segments(ya, yb, cd[b[mc]], njs)
     keep = (lb - la) * (yb - ya).norm(dim=-1) > eps
     return pc[keep], qc[keep], ec[keep], sa[keep], sb[keep], la[keep], lb[keep]

@@ -17,6 +17,7 @@ __all__ = [
     "bilinear",
     "clip_interval",
     "clip_polygons",
+    "clip_segments",
     "compact_polygons",
     "facet_samples",
     "facing_any",
@@ -229,6 +230,18 @@ def clip_interval(lo: Tensor, hi: Tensor, a: Tensor, b: Tensor) -> tuple[Tensor,
     hi = torch.where(b < 0, torch.minimum(hi, root), hi)
     hi = torch.where((b == 0) & (a < 0), torch.full_like(hi, -1.0), hi)
     return lo, hi
+
+
+def clip_segments(ya: Tensor, yb: Tensor, quads: Tensor, normals: Tensor) -> tuple[Tensor, Tensor]:
+    """The part ``[λ_a, λ_b]`` of each segment ``ya + λ (yb − ya)`` (``[n, 3]``, in the quad's plane) inside the
+    convex quad ``[n, 4, 3]`` with unit normal ``normals [n, 3]`` (empty where ``λ_b <= λ_a``)."""
+    la, lb = torch.zeros_like(ya[:, 0]), torch.ones_like(ya[:, 0])
+    for k in range(4):
+        c0, c1 = quads[:, k], quads[:, (k + 1) % 4]
+        inward = torch.linalg.cross(normals, c1 - c0, dim=-1)
+        fa = ((ya - c0) * inward).sum(-1)
+        la, lb = clip_interval(la, lb, fa, ((yb - c0) * inward).sum(-1) - fa)
+    return la, lb
 
 
 def quad_coordinates(quads: Tensor, y: Tensor, iterations: int = 4) -> tuple[Tensor, Tensor]:
