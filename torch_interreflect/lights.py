@@ -38,7 +38,6 @@ import warnings
 from collections.abc import Sequence
 from typing import Literal
 
-import numpy as np
 import torch
 from torch import Tensor
 
@@ -46,6 +45,7 @@ from ._deprecation import renamed_keywords
 from .errors import ShapeError, ValueRangeError
 from .formfactors.hemisphere import hemisphere_fractions
 from .formfactors.operator import FormFactorOperator
+from .formfactors.rules import gauss_legendre01
 from .formfactors.sampling import check_sample_count
 from .formfactors.visibility_grad import candidate_edges
 from .geometry._polygon import bilinear, clip_interval, clip_segments, facing_any, plane_eps, quad_coordinates
@@ -210,8 +210,7 @@ def sun_shadow_gradient(scene: Scene, direction: Tensor, facets: Tensor, *, edge
     f, e, n, sa, sb, la, lb, ya, seg, length = (t[keep] for t in (f, e, n, sa, sb, la, lb, ya, seg, length))
     if f.numel() == 0:
         return out
-    t, w = np.polynomial.legendre.leggauss(edge_order)
-    t, w = torch.tensor((t + 1) / 2), torch.tensor(w / 2)
+    t, w = gauss_legendre01(edge_order)
     lam = (la[:, None] + (lb - la)[:, None] * t).reshape(-1)
     ell = ((lb - la)[:, None] * w * length[:, None]).reshape(-1)
     f, e, n, sa, sb, ya, seg, length = (z.repeat_interleave(edge_order, 0)

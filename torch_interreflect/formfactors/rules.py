@@ -9,7 +9,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-__all__ = ["GRADE_Q", "default_adjacent_order", "order_for", "quadrature_rule"]
+__all__ = ["GRADE_Q", "default_adjacent_order", "gauss_legendre01", "order_for", "quadrature_rule"]
 
 
 
@@ -18,6 +18,12 @@ def _gauss01(n: int) -> tuple[np.ndarray, np.ndarray]:
     """Gauss-Legendre nodes and weights on [0, 1]."""
     x, w = np.polynomial.legendre.leggauss(n)
     return 0.5 * (x + 1.0), 0.5 * w
+
+
+def gauss_legendre01(n: int, dtype: torch.dtype = torch.float64) -> tuple[Tensor, Tensor]:
+    """Gauss-Legendre nodes and weights ``[n]`` on [0, 1] (a rule along a line)."""
+    t, w = _gauss01(n)
+    return torch.tensor(t, dtype=dtype), torch.tensor(w, dtype=dtype)
 
 
 @cache

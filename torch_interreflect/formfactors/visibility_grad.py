@@ -49,6 +49,7 @@ from torch.utils.checkpoint import checkpoint
 from ..geometry._polygon import bilinear, clip_interval, clip_segments, quad_coordinates
 from ..geometry.scene import Scene
 from .compiled import launch, loops
+from .rules import gauss_legendre01
 from .sampling import R2_STEP, pair_seeds
 
 __all__ = [
@@ -95,11 +96,6 @@ def candidate_edges(sc: Scene, eps: float) -> tuple[Tensor, Tensor]:
     _, pick = np.unique(group[idx].numpy(), return_index=True)  # one facet per edge
     idx = idx[torch.as_tensor(pick)]
     return facet[idx], corner[idx]
-
-
-def _gauss01(n: int, dtype: torch.dtype) -> tuple[Tensor, Tensor]:
-    t, w = np.polynomial.legendre.leggauss(n)
-    return torch.tensor((t + 1) / 2, dtype=dtype), torch.tensor(w / 2, dtype=dtype)
 
 
 def domain_rule(n: int, dom: Tensor, tgt: Tensor, dtype: torch.dtype) -> tuple[Tensor, Tensor, Tensor]:
@@ -255,7 +251,7 @@ def boundary_values(sc: Scene, dom: Tensor, tgt: Tensor, caster: Any, rule: tupl
     ya, yb = (_project(x, e0[e] + t[:, None] * (e1[e] - e0[e]), oj, nj) for t in (sa, sb))
     ga = D - ((e0[e] + sa[:, None] * (e1[e] - e0[e]) - oj) * nj).sum(-1)
     gb = D - ((e0[e] + sb[:, None] * (e1[e] - e0[e]) - oj) * nj).sum(-1)
-    tl, wl = _gauss01(edge_order, cd.dtype)
+    tl, wl = gauss_legendre01(edge_order, cd.dtype)
     lam = (la[:, None] + (lb - la)[:, None] * tl).reshape(-1)
     span = ((lb - la)[:, None] * wl).reshape(-1)
     p, q, e, sa, sb, x, jac, nj, ya, yb, ga, gb = (z.repeat_interleave(edge_order, 0)
