@@ -142,14 +142,10 @@ def test_sky_open_fraction_of_an_occluded_floor_follows_the_moving_blocker():
     rectangle) and to the ceiling past it (``blocked_plates_oracle``)."""
     import numpy as np
 
-    from tests.formfactors.test_geometry_grad import _rect_factor, blocked_plates_oracle
+    from tests.formfactors.test_geometry_grad import _rect_factor, blocked_plates_oracle, blocked_plates_scene
 
-    zero = torch.zeros((), dtype=F64)
     shift, height = (torch.tensor(v, dtype=F64, requires_grad=True) for v in (0.1, 1.0))
-    floor = torch.tensor([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]], dtype=F64)
-    ceiling = torch.tensor([[0, 0, 0], [0, 1, 0], [1, 1, 0], [1, 0, 0]], dtype=F64) + torch.stack([zero, zero, height])
-    blocker = torch.tensor([[0.3, 0.3, 0.5], [0.3, 0.7, 0.5], [0.7, 0.7, 0.5], [0.7, 0.3, 0.5]], dtype=F64)
-    scene = ti.Scene.from_polygons(torch.stack([floor, ceiling, blocker + torch.stack([shift, zero, zero])]))
+    scene = blocked_plates_scene(shift, height)
     K = ti.form_factors(scene, visibility_grad_points=1024)
     assert bool(K.info["occluded_facets"][0])
     open_floor = ti.lights.sky(scene, K, ONE)[0, 0] / math.pi

@@ -174,14 +174,18 @@ def blocked_plates_oracle(shift: torch.Tensor, height: torch.Tensor, n: int = 12
     return ((_rect_factor(px, py, 0.0, 1.0, 0.0, 1.0, height) - shadow) * W).sum()
 
 
-def blocked_plates(shift: torch.Tensor, height: torch.Tensor, **options) -> torch.Tensor:
-    """The library's ``F`` (floor → ceiling) of the scene of :func:`blocked_plates_oracle`."""
+def blocked_plates_scene(shift: torch.Tensor, height: torch.Tensor) -> ti.Scene:
+    """The scene of :func:`blocked_plates_oracle`: floor, ceiling at ``height``, blocker moved by ``shift``."""
     zero = torch.zeros((), dtype=F64)
     floor = torch.tensor([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]], dtype=F64)
     ceiling = torch.tensor([[0, 0, 0], [0, 1, 0], [1, 1, 0], [1, 0, 0]], dtype=F64) + torch.stack([zero, zero, height])
     blocker = torch.tensor([[0.3, 0.3, 0.5], [0.3, 0.7, 0.5], [0.7, 0.7, 0.5], [0.7, 0.3, 0.5]], dtype=F64)
-    blocker = blocker + torch.stack([shift, zero, zero])
-    K = ti.form_factors(ti.Scene.from_polygons(torch.stack([floor, ceiling, blocker])), **options)
+    return ti.Scene.from_polygons(torch.stack([floor, ceiling, blocker + torch.stack([shift, zero, zero])]))
+
+
+def blocked_plates(shift: torch.Tensor, height: torch.Tensor, **options) -> torch.Tensor:
+    """The library's ``F`` (floor → ceiling) of the scene of :func:`blocked_plates_oracle`."""
+    K = ti.form_factors(blocked_plates_scene(shift, height), **options)
     assert K.info["occluded_pairs"] > 0
     return K.to_dense()[0, 1]
 
@@ -269,12 +273,7 @@ def test_visibility_gradient_is_zero_in_value_and_compiled_equals_torch(monkeypa
     from torch_interreflect.geometry import RayCaster
 
     shift = torch.tensor(0.1, dtype=F64, requires_grad=True)
-    height = torch.tensor(1.0, dtype=F64)
-    zero = torch.zeros((), dtype=F64)
-    floor = torch.tensor([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]], dtype=F64)
-    ceiling = torch.tensor([[0, 0, 0], [0, 1, 0], [1, 1, 0], [1, 0, 0]], dtype=F64) + torch.stack([zero, zero, height])
-    blocker = torch.tensor([[0.3, 0.3, 0.5], [0.3, 0.7, 0.5], [0.7, 0.7, 0.5], [0.7, 0.3, 0.5]], dtype=F64)
-    sc = ti.Scene.from_polygons(torch.stack([floor, ceiling, blocker + torch.stack([shift, zero, zero])]))
+    sc = blocked_plates_scene(shift, torch.tensor(1.0, dtype=F64))
     caster = RayCaster(ti.Scene.from_polygons(sc.corners.detach()))
     dom, tgt = torch.tensor([0]), torch.tensor([1])
     out = vg.visibility_gradient(sc, dom, tgt, caster, 1e-9, points=64)
