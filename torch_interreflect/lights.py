@@ -47,10 +47,10 @@ from .formfactors.hemisphere import hemisphere_fractions
 from .formfactors.operator import FormFactorOperator
 from .formfactors.rules import gauss_legendre01
 from .formfactors.sampling import check_sample_count
-from .formfactors.visibility_grad import candidate_edges
-from .geometry._polygon import bilinear, clip_interval, clip_segments, facing_any, plane_eps, quad_coordinates
+from .geometry._polygon import bilinear, facing_any, plane_eps, quad_coordinates
 from .geometry.raycast import RayCaster
 from .geometry.scene import Scene
+from .geometry.shadows import shadow_segments
 
 __all__ = ["back_coverage", "directional", "light_geometry", "lit_fraction", "sky", "uniform"]
 
@@ -137,11 +137,10 @@ def sun_shadow_gradient(scene: Scene, direction: Tensor, facets: Tensor, *, edge
     :func:`lit_fraction` is ray cast on detached geometry. When a blocker, a facet or the light direction moves,
     the shadow a blocker casts on a facet moves, and the facet's lit area changes by ``− ∮_Γ (u · n) dl`` over the
     shadow's edge ``Γ`` on the facet (``n``: its unit normal in the facet's plane pointing into the lit part,
-    ``u``: its velocity relative to the facet's own points). ``Γ`` is found as in
-    :mod:`~torch_interreflect.formfactors.visibility_grad`: boundary and crease edges of the mesh (its
-    :func:`~torch_interreflect.formfactors.visibility_grad.candidate_edges`), the part in front of the facet,
-    projected along the light onto its plane and clipped to it, ``edge_order`` Gauss points per part, kept where a
-    ray toward the light is blocked on exactly one side. The facet's own uneven stretching (a corner moving) changes
+    ``u``: its velocity relative to the facet's own points). ``Γ`` is found by
+    :func:`~torch_interreflect.geometry.shadows.shadow_segments` (boundary and crease edges of the mesh, the part
+    in front of the facet, projected along the light onto its plane and clipped to it), ``edge_order`` Gauss points
+    per part, kept where a ray toward the light is blocked on exactly one side. The facet's own uneven stretching (a corner moving) changes
     its lit share too: ``Σ_c dJ_c (V_c − lit) / A`` over 32 × 32 cells (zero for affine motion). Both are added
     with value zero (edge sampling).
 
@@ -186,37 +185,18 @@ def sun_shadow_gradient(scene: Scene, direction: Tensor, facets: Tensor, *, edge
         jac_g = bilinear(corners[facets], u, v)[1]
         out = out.index_add(0, facets, ((jac_g - jac_g.detach()) * (free - lit)).sum(1) / jac.sum(1))
     eps = plane_eps(sc)
-    facet, corner = candidate_edges(sc, eps)
-    if facet.numel() == 0 or facets.numel() == 0:
-        return out
-    e0, e1 = cd[facet, corner], cd[facet, (corner + 1) % 4]
-    f, e = (t.reshape(-1) for t in torch.meshgrid(facets, torch.arange(facet.numel()), indexing="ij"))
-    n, o = normals[f], cd[f, 0]
-    h0, h1 = ((e0[e] - o) * n).sum(-1), ((e1[e] - o) * n).sum(-1)
-    sa, sb = clip_interval(torch.zeros_like(h0), torch.ones_like(h0), h0 - eps, h1 - h0)  # in front of the facet
-    keep = sb > sa
-    f, e, n, o, sa, sb = f[keep], e[keep], n[keep], o[keep], sa[keep], sb[keep]
-    dn = n @ d  # < 0 on lit facets
-
-    def project(s: Tensor) -> Tensor:
-        b = e0[e] + s[:, None] * (e1[e] - e0[e])
-        return b - (((b - o) * n).sum(-1) / dn)[:, None] * d
-
-    ya, yb = project(sa), project(sb)
-    la, lb = clip_segments(ya, yb, cd[f], n)  # the projection's part on the facet
-    seg = yb - ya
-    length = seg.norm(dim=-1)
-    keep = (lb - la) * length > eps
-    f, e, n, sa, sb, la, lb, ya, seg, length = (t[keep] for t in (f, e, n, sa, sb, la, lb, ya, seg, length))
-    if f.numel() == 0:
+    parts = shadow_segments(sc.detach(), d, facets, eps)
+    if parts.facet.numel() == 0:
         return out
     t, w = gauss_legendre01(edge_order)
-    lam = (la[:, None] + (lb - la)[:, None] * t).reshape(-1)
-    ell = ((lb - la)[:, None] * w * length[:, None]).reshape(-1)
-    f, e, n, sa, sb, ya, seg, length = (z.repeat_interleave(edge_order, 0)
-                                        for z in (f, e, n, sa, sb, ya, seg, length))
-    y = ya + lam[:, None] * seg
-    s = sa + lam * (sb - sa)  # parallel projection: the edge parameter is affine in λ
+    seg = parts.end - parts.start
+    length = seg.norm(dim=-1)
+    f, n = parts.facet.repeat_interleave(edge_order), normals[parts.facet].repeat_interleave(edge_order, 0)
+    y = (parts.start[:, None, :] + t[None, :, None] * seg[:, None, :]).reshape(-1, 3)
+    s = (parts.s_a[:, None] + t * (parts.s_b - parts.s_a)[:, None]).reshape(-1)
+    ell = (w * length[:, None]).reshape(-1)
+    seg, length = seg.repeat_interleave(edge_order, 0), length.repeat_interleave(edge_order)
+    ef, ec = parts.edge_facet.repeat_interleave(edge_order), parts.edge_corner.repeat_interleave(edge_order)
     side = torch.linalg.cross(n, seg / length[:, None], dim=-1)
     off = 1e-4 * sc.areas.detach()[f].sqrt()[:, None] * side
     towards = (-d).expand(y.shape[0], 3).numpy()
@@ -226,9 +206,9 @@ def sun_shadow_gradient(scene: Scene, direction: Tensor, facets: Tensor, *, edge
     if not bool(edge.any()):
         return out
     sign = torch.where(minus, 1.0, -1.0).to(torch.float64)[edge]  # n_in = sign · side points into the lit part
-    f, e, s, y, side, ell = (z[edge] for z in (f, e, s, y, side, ell))
+    f, ef, ec, s, y, side, ell = (z[edge] for z in (f, ef, ec, s, y, side, ell))
     # the differentiable positions: the shadow point, and the facet's own point under it
-    g0, g1 = corners[facet[e], corner[e]], corners[facet[e], (corner[e] + 1) % 4]
+    g0, g1 = corners[ef, ec], corners[ef, (ec + 1) % 4]
     b = g0 + s[:, None] * (g1 - g0)
     ng, og = normals_g[f], corners[f, 0]
     yg = b - (((b - og) * ng).sum(-1) / (ng * d_g).sum(-1))[:, None] * d_g

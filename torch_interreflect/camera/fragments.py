@@ -38,11 +38,12 @@ def primary_fragments(scene: Scene, view: View, s: int, caster: RayCaster) -> di
     centre = torch.zeros(uniq.numel(), 3, dtype=torch.float64).index_add_(0, inv, pts[front]) / count[:, None]
     background = torch.bincount(rows[~ok], minlength=h * w).to(torch.float64) / (s * s)
     return {"pixel": uniq // F, "facet": uniq % F, "weight": count / (s * s), "centre": centre,
-            "background": background.reshape(h, w), "ray_fragment": inv, "ray_point": pts[front]}
+            "background": background.reshape(h, w), "ray_fragment": inv, "ray_point": pts[front],
+            "ray_index": torch.nonzero(front).reshape(-1)}
 
 
 def coarse_points(frag: dict[str, Tensor], height: int, width: int, num_facets: int,
-            stride: int) -> tuple[Tensor, Tensor, Tensor]:
+            stride: int) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """Gather points every ``stride`` pixels, and the bilinear weights that carry their values to the fragments.
 
     A coarse fragment is (block of ``stride × stride`` pixels, facet), at the mean of its rays' hit points. Each
@@ -50,7 +51,8 @@ def coarse_points(frag: dict[str, Tensor], height: int, width: int, num_facets: 
     on the same facet, renormalised; its own block is always among them.
 
     Returns:
-        ``(centres [Kc, 3], facets [Kc], weights)``: ``weights`` sparse COO ``[K, Kc]`` float64, rows summing to 1.
+        ``(centres [Kc, 3], facets [Kc], weights, ray_point)``: ``weights`` sparse COO ``[K, Kc]`` float64, rows
+        summing to 1; ``ray_point [R]`` the coarse point of each of the fragments' rays.
     """
     F, st = num_facets, int(stride)
     wc, hc = -(-width // st), -(-height // st)
@@ -77,4 +79,4 @@ def coarse_points(frag: dict[str, Tensor], height: int, width: int, num_facets: 
     r, c, v = torch.cat(rows), torch.cat(cols), torch.cat(vals)
     v = v / torch.zeros(pix.numel(), dtype=torch.float64).index_add_(0, r, v)[r]
     weights = torch.sparse_coo_tensor(torch.stack([r, c]), v, (pix.numel(), keys.numel())).coalesce()
-    return centres, keys % F, weights
+    return centres, keys % F, weights, inv

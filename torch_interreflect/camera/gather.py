@@ -33,6 +33,7 @@ from ..geometry.raycast import RayCaster
 from ..geometry.scene import Scene
 from ..solver.api import solve
 from .fragments import coarse_points, primary_fragments
+from .image_grad import ImageGradient, edge_pixels
 from .point_kernel import point_form_factors
 from .sensor import Camera
 from .view import View
@@ -94,6 +95,7 @@ def _direct(scene: Scene, light: Any, frag: dict[str, Tensor], caster: RayCaster
             escaped = caster.first_hit(pts.numpy(), (-d).expand(pts.shape[0], 3).numpy()) < 0
             free[lit] = torch.from_numpy(escaped).to(torch.float64)
         per_ray = cos * free
+        frag["ray_free"] = free  # kept for the image's gradient (image_grad)
         n = torch.bincount(frag["ray_fragment"], minlength=h.numel()).to(torch.float64)
         return torch.zeros(h.numel(), dtype=torch.float64).index_add_(0, frag["ray_fragment"], per_ray) / n
     if not t.is_floating_point() or t.shape != (F,):
@@ -119,6 +121,12 @@ class Gather(nn.Module):
         open_sky: ``1 − Σ_j |F(x_k → j)| V(x_k, j)``, the cosine-weighted part of each fragment's hemisphere that
             sees no facet (``g0`` of a uniform sky is ``π`` times it). ``[K]`` (``None`` likewise).
         background: Fraction of each pixel that sees no facet. ``[H, W]``.
+        fragment_pixel: The pixel (``row · W + column``) of each fragment. ``[K]`` int64.
+        ray_index: The sub-pixel rays (of :meth:`View.rays`) that hit a facet's front. ``[R]`` int64.
+        ray_fragment: The fragment of each of them. ``[R]`` int64.
+        ray_free: For a sun: 1 where the ray's hit point sees the sun unblocked, else 0. ``[R]`` (else ``None``).
+        kernel: With ``stride > 1``: the coarse gather points, ``(ray_point [R], facet [Kc], weights [K, Kc],
+            factors [Kc, F])`` (:func:`~torch_interreflect.camera.fragments.coarse_points`); else ``None``.
         view: The :class:`~torch_interreflect.camera.View`; ``supersample``, ``samples``: the settings.
         info: ``pairs``, ``rays`` and ``seconds`` (per stage) of the build.
     """
@@ -136,6 +144,11 @@ class Gather(nn.Module):
         self.register_buffer("pixel_fragments", pf.to(device), persistent=False)
         self.register_buffer("coverage", cov.to(device), persistent=False)
         self.register_buffer("fragment_facet", frag["facet"].to(device), persistent=False)
+        self.register_buffer("fragment_pixel", frag["pixel"].to(device), persistent=False)
+        self.register_buffer("ray_index", frag["ray_index"].to(device), persistent=False)
+        self.register_buffer("ray_fragment", frag["ray_fragment"].to(device), persistent=False)
+        self.register_buffer("ray_free", None, persistent=False)
+        self.kernel: tuple[Tensor, Tensor, Tensor, Tensor] | None = None
         self.register_buffer("background", frag["background"].to(device=device, dtype=dtype), persistent=False)
         self.register_buffer("gather", None, persistent=False)
         self.register_buffer("direct", None, persistent=False)
@@ -239,14 +252,18 @@ def gather_operator(
             factors, covered, info = point_form_factors(scene, frag["centre"], frag["facet"], samples=samples,
                                                         seed=seed, caster=op._caster)
         else:
-            centres, facets, weights = coarse_points(frag, view.height, view.width, scene.num_facets, int(stride))
+            centres, facets, weights, ray_point = coarse_points(frag, view.height, view.width, scene.num_facets,
+                                                                int(stride))
             factors, covered, info = point_form_factors(scene, centres, facets, samples=samples, seed=seed,
                                                         caster=op._caster)
+            op.kernel = (ray_point, facets, weights, factors)
             factors = torch.sparse.mm(weights, factors).coalesce()
             covered = torch.sparse.mm(weights, covered[:, None])[:, 0]
             info["points"] = int(centres.shape[0])
         t0 = time.perf_counter()
         op._set_kernel(factors, _direct(scene, light, frag, op._caster, covered, factors), covered)
+        if "ray_free" in frag:
+            op.register_buffer("ray_free", frag["ray_free"].to(op.background), persistent=False)
         op.info.update(pairs=info["pairs"], rays=info["rays"], points=info.get("points", op.num_fragments))
         op.info["seconds"].update(kernel=info["seconds"], direct=time.perf_counter() - t0)
         del op._frag, op._caster
@@ -284,7 +301,8 @@ def _check_spectra(op: Gather, reflectance: Tensor, irradiance: Tensor) -> tuple
 
 
 def gathered_radiance(op: Gather, reflectance: Tensor, irradiance: Tensor, spd: Tensor | None = None, *,
-                      shading: str = "gather", direct: Tensor | None = None) -> Tensor:
+                      shading: str = "gather", direct: Tensor | None = None,
+                      gradient: ImageGradient | None = None) -> Tensor:
     """Spectral radiance images ``r(x) E(x) / π`` of a view, per pixel (W·sr⁻¹·m⁻²·nm⁻¹).
 
     ``E(x) = g0(x) S + Σ_j G[x, j] B_j`` with ``B = R E`` the facets' radiosity (``shading="gather"``), or the
@@ -301,6 +319,9 @@ def gathered_radiance(op: Gather, reflectance: Tensor, irradiance: Tensor, spd: 
         shading: ``"gather"`` or ``"flat"``.
         direct: ``g0`` per fragment in place of ``op.direct``, e.g. a mix of lights
             ``a · op.open_sky · π + (1 − a) · op.direct``. Shape ``[K]``.
+        gradient: The :class:`~torch_interreflect.camera.image_grad.ImageGradient` of the operator and a scene
+            whose corners (or a sun direction) require grad: the image then passes gradients to them (values
+            unchanged). With ``direct=`` its direct-light term is left out.
 
     Returns:
         Radiance images. Shape ``[..., L, H, W]``.
@@ -309,7 +330,10 @@ def gathered_radiance(op: Gather, reflectance: Tensor, irradiance: Tensor, spd: 
         raise ValueError(f"shading must be 'gather' or 'flat'; got {shading!r}")
     r, E = _check_spectra(op, reflectance, irradiance)
     if shading == "flat":
-        return _to_image(op, _columns(op.coverage, r * E / math.pi))
+        flat = _columns(op.coverage, r * E / math.pi)
+        if gradient is not None:
+            flat = flat + edge_pixels(gradient, None, r * E / math.pi, op.height * op.width)
+        return _to_image(op, flat)
     if op.gather is None:
         raise ValueError("this operator was built with shading='flat'; build it with gather_operator(..., "
                          "shading='gather') to gather")
@@ -318,22 +342,32 @@ def gathered_radiance(op: Gather, reflectance: Tensor, irradiance: Tensor, spd: 
     S = torch.as_tensor(spd, dtype=E.dtype, device=E.device)
     if S.shape[-1] != E.shape[-1]:
         raise ShapeError(f"spd must be [..., L] with L = {E.shape[-1]}; got {list(S.shape)}")
-    if direct is None:
-        direct = op.direct
-    elif direct.shape != (op.num_fragments,):
+    if direct is not None and direct.shape != (op.num_fragments,):
         raise ShapeError(f"direct must be [K] with K = {op.num_fragments} (one per fragment); got {list(direct.shape)}")
+    if direct is None:
+        direct = op.direct.to(device=E.device, dtype=E.dtype)
+        if gradient is not None and gradient.direct is not None:
+            direct = direct + gradient.direct.to(direct)
     direct = direct.to(device=E.device, dtype=E.dtype)
     e_frag = direct[:, None] * S[..., None, :] + _columns(op.gather, r * E)  # [..., K, L]
+    if gradient is not None and gradient.gather is not None:
+        moved = _columns(gradient.gather, r * E)
+        e_frag = e_frag + (moved if gradient.weights is None else _columns(gradient.weights, moved))
     r_frag = r.index_select(-2, op.fragment_facet.to(E.device))
     r_frag, e_frag = torch.broadcast_tensors(r_frag, e_frag)
-    return _to_image(op, _columns(op.pixel_fragments, r_frag * e_frag / math.pi))
+    values = r_frag * e_frag / math.pi
+    pixels = _columns(op.pixel_fragments, values)
+    if gradient is not None:
+        pixels = pixels + edge_pixels(gradient, values, r * E / math.pi, op.height * op.width)
+    return _to_image(op, pixels)
 
 
 def gathered_image(op: Gather, reflectance: Tensor, irradiance: Tensor, spd: Tensor | None, camera: Camera, *,
-                   shading: str = "gather", direct: Tensor | None = None) -> Tensor:
+                   shading: str = "gather", direct: Tensor | None = None,
+                   gradient: ImageGradient | None = None) -> Tensor:
     """Linear camera RGB images of a view: :func:`gathered_radiance` through the camera's sensitivities.
 
-    Arguments as for :func:`gathered_radiance` (``direct`` included), and ``camera`` (a
+    Arguments as for :func:`gathered_radiance` (``direct`` and ``gradient`` included), and ``camera`` (a
     :class:`~torch_interreflect.camera.Camera` whose grid has the ``L`` wavelengths). ``shading="gather"``
     (per-pixel final gather) or ``"flat"`` (one colour per facet).
 
@@ -351,7 +385,8 @@ def gathered_image(op: Gather, reflectance: Tensor, irradiance: Tensor, spd: Ten
         >>> gathered_image(op, r, E, S, cam).shape
         torch.Size([3, 8, 8])
     """
-    rad = gathered_radiance(op, reflectance, irradiance, spd, shading=shading, direct=direct)  # [..., L, H, W]
+    rad = gathered_radiance(op, reflectance, irradiance, spd, shading=shading, direct=direct,
+                            gradient=gradient)  # [..., L, H, W]
     rgb = camera(rad.movedim(-3, -1))  # [..., H, W, C]
     return rgb.movedim(-1, -3)
 

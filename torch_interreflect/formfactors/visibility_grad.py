@@ -47,6 +47,7 @@ from torch import Tensor
 from torch.utils.checkpoint import checkpoint
 
 from ..geometry._polygon import bilinear, clip_interval, clip_segments, quad_coordinates
+from ..geometry.edges import candidate_edges
 from ..geometry.scene import Scene
 from .compiled import launch, loops
 from .rules import gauss_legendre01
@@ -61,41 +62,6 @@ __all__ = [
 VISIBILITY_GRAD_POINTS = 32
 #: Side offset of the two test rays of a boundary sample, as a share of its distance from the point.
 _SIDE = 1e-4
-
-
-def candidate_edges(sc: Scene, eps: float) -> tuple[Tensor, Tensor]:
-    """Edges that can cast a shadow boundary: ``(facet [E], corner [E])``, the edge from corner ``k`` to corner
-    ``k + 1`` (mod 4) of ``facet``. Boundary edges (one facet) and creases (two facets with different planes);
-    edges between coplanar facets, and the degenerate edge of a triangle, are left out. Edges are matched by their
-    end points rounded to ``eps``."""
-    c = sc.corners.detach().double()
-    F = c.shape[0]
-    a, b = c, torch.roll(c, -1, dims=1)  # [F, 4, 3]
-    facet = torch.arange(F).repeat_interleave(4)
-    corner = torch.arange(4).repeat(F)
-    a, b = a.reshape(-1, 3), b.reshape(-1, 3)
-    real = (b - a).norm(dim=-1) > eps
-    facet, corner, a, b = facet[real], corner[real], a[real], b[real]
-    ka, kb = torch.round(a / eps).long(), torch.round(b / eps).long()
-    lead = (ka != kb).int().argmax(-1)  # order the two ends lexicographically
-    swap = (ka.gather(1, lead[:, None]) > kb.gather(1, lead[:, None]))[:, 0]
-    key = torch.cat([torch.where(swap[:, None], kb, ka), torch.where(swap[:, None], ka, kb)], 1)
-    _, group, count = torch.unique(key, dim=0, return_inverse=True, return_counts=True)
-    share = count[group]
-    keep = share != 2  # boundary edges, and edges of more than two facets
-    two = torch.nonzero(share == 2).reshape(-1)
-    if two.numel():
-        # two facets on one edge: a crease unless they share a plane (same normal, same offset)
-        n = sc.normals.detach().double()[facet]
-        pos = (n * a).sum(-1)
-        pair = two[torch.argsort(group[two], stable=True)]
-        i, j = pair[0::2], pair[1::2]
-        flat = ((n[i] * n[j]).sum(-1) > 1 - 1e-9) & ((pos[i] - pos[j]).abs() <= eps)
-        keep[i[~flat]] = True  # one of the two facets stands for the edge
-    idx = torch.nonzero(keep).reshape(-1)
-    _, pick = np.unique(group[idx].numpy(), return_index=True)  # one facet per edge
-    idx = idx[torch.as_tensor(pick)]
-    return facet[idx], corner[idx]
 
 
 def domain_rule(n: int, dom: Tensor, tgt: Tensor, dtype: torch.dtype) -> tuple[Tensor, Tensor, Tensor]:

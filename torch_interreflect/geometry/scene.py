@@ -326,6 +326,10 @@ class Scene:
         mat = self._material.to(dev) if self._material is not None else None
         return Scene.from_parts(c, self._is_triangle.to(dev), mat, self.material_names)
 
+    def detach(self) -> Scene:
+        """The same facets with corners detached from autograd (ray casting, caches)."""
+        return Scene.from_parts(self._corners.detach(), self._is_triangle, self._material, self.material_names)
+
     def __len__(self) -> int:
         return self.num_facets
 

@@ -1,0 +1,341 @@
+"""Gradients of gathered images with respect to the scene's corners and a sun's direction.
+
+A gathered image (:mod:`.gather`) is built from ray-cast quantities that are constants for autograd: which facet
+each sub-pixel ray hits, the hit points, the per-pixel kernel ``F(x → j) V(x, j)`` and the direct light ``g0(x)``.
+:func:`image_gradient` gives, for an operator and the same scene with corners that require grad (and/or a sun
+direction that does), the terms that carry their gradient. Every term is zero in value (``t − t.detach()``), so an
+image keeps its values bit for bit; only its graph changes.
+
+- **Interior.** The hit point of each sub-pixel ray moves with the plane of the facet it hits
+  (``x = eye + t d``, ``t = (c − eye)·n / (d·n)``); each gather point's kernel ``F(x → j)`` (Lambert's contour
+  formula, ``j`` clipped to the tangent plane of ``x``) follows ``x``, the normal and ``j``'s corners, with the
+  ray-cast visible fraction ``V(x, j)`` held; the direct light follows the same quantities (a sun's per-ray cosine,
+  the sky's open part ``1 − Σ_j F V`` over the front-facing targets, an area light's ``π Σ F V``).
+- **Silhouettes and facet borders** (edge sampling, as in Li et al. 2018, *Differentiable Monte Carlo ray tracing
+  through edge sampling*). An image is the box-filtered integral of the radiance over each pixel; where a facet's
+  edge is visible the radiance jumps, and moving the edge in the image by ``v`` (pixels, along its normal ``n``)
+  changes the pixel by ``∫ (f_a − f_b) v dl`` with ``f_a``, ``f_b`` the radiance on the two sides (``n`` points
+  from ``a`` to ``b``). Every mesh edge (:func:`~torch_interreflect.geometry.edges.mesh_edges`) is projected,
+  clipped to the image and sampled at midpoints every ``spacing`` pixels; two primary rays just either side of
+  each sample tell whether the edge is seen there (one side hits one of its facets) and what lies on each side (the
+  fragment of that pixel and facet, or the facet's flat radiance where the pixel has no such fragment, or 0 for
+  the background and the back of a facet).
+
+Not included (held fixed): where the per-pixel visibility ``V(x, j)`` and a sun's shadow change inside the image
+(shadow boundaries on a surface are not mesh edges), targets seen from their back in the sky's open part,
+and edges that cross the camera's plane.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from ..errors import ShapeError
+from ..formfactors.contour import point_polygon_factor
+from ..geometry._polygon import clip_interval, clip_polygons, plane_eps
+from ..geometry.edges import mesh_edges
+from ..geometry.raycast import RayCaster
+from ..geometry.scene import Scene
+
+if TYPE_CHECKING:
+    from .gather import Gather
+
+__all__ = ["EDGE_SPACING", "ImageGradient", "edge_pixels", "image_gradient"]
+
+#: Default distance between edge samples along a projected edge, in pixels.
+EDGE_SPACING = 0.5
+#: Offset of the two side rays of an edge sample from the edge, in pixels.
+_SIDE = 1e-2
+
+
+@dataclass
+class ImageGradient:
+    """The zero-valued terms that carry a gathered image's gradient (built by :func:`image_gradient`).
+
+    Attributes:
+        gather: ``V (F(x → j) − F(x → j).detach())`` at the gather points. Sparse COO ``[Kp, F]`` (``None`` for flat
+            shading).
+        weights: Sparse ``[K, Kp]`` that carry gather points to fragments (``stride > 1``), or ``None`` (``Kp = K``).
+        direct: The same for ``g0`` per fragment. ``[K]`` (``None`` when nothing moves it).
+        edge_pixel: The pixel (``row · W + column``) of each edge sample. ``[S]`` int64.
+        edge_weight: ``Δl (v − v.detach())``, the sample's length times its normal speed in the image. ``[S]``.
+        side_fragment: The fragment on side ``a`` (row 0) and ``b`` (row 1) of each sample, ``-1`` if none. ``[2, S]``.
+        side_facet: The facet hit from its front on each side, ``-1`` for the background or a back. ``[2, S]``.
+    """
+
+    gather: Tensor | None
+    weights: Tensor | None
+    direct: Tensor | None
+    edge_pixel: Tensor
+    edge_weight: Tensor
+    side_fragment: Tensor
+    side_facet: Tensor
+
+
+def _hit_points(op: Gather, scene: Scene) -> tuple[Tensor, Tensor, Tensor]:
+    """Differentiable hit points of the front rays ``[R, 3]``, their facets ``[R]`` and directions ``[R, 3]``."""
+    eye, dirs = op.view.rays(op.supersample)
+    ray_index = op.ray_index.cpu()
+    d = dirs[ray_index].to(device=scene.device, dtype=scene.dtype)
+    e = eye.to(device=scene.device, dtype=scene.dtype)
+    h = op.fragment_facet.cpu()[op.ray_fragment.cpu()].to(scene.device)
+    n, c = scene.normals[h], scene.centroids[h]
+    t = ((c - e) * n).sum(-1) / (d * n).sum(-1)
+    return e + t[:, None] * d, h, d
+
+
+def _group_mean(values: Tensor, group: Tensor, size: int) -> Tensor:
+    count = torch.bincount(group, minlength=size).to(values.dtype).clamp_min(1)
+    out = torch.zeros(size, *values.shape[1:], dtype=values.dtype, device=values.device).index_add(0, group, values)
+    return out / count.reshape(-1, *([1] * (values.dim() - 1)))
+
+
+def _kernel_delta(op: Gather, scene: Scene, x_ray: Tensor) -> tuple[Tensor, Tensor | None, Tensor, Tensor, Tensor]:
+    """``(delta [Kp, F] sparse COO, weights | None, rows [P], cols [P], delta values [P])`` of the gather
+    points."""
+    if op.kernel is None:
+        group, facet, weights = op.ray_fragment.cpu(), op.fragment_facet.cpu(), None
+        g = op.gather.cpu().to_sparse_coo().coalesce()
+    else:
+        group, facet, weights, g = op.kernel
+        g = g.coalesce()
+    group, facet = group.to(scene.device), facet.to(scene.device)
+    x = _group_mean(x_ray, group, int(facet.numel()))
+    (rows, cols), vals = g.indices().to(scene.device), g.values().to(device=scene.device, dtype=scene.dtype)
+    h = facet[rows]
+    n, c = scene.normals[h], scene.centroids[h]
+    poly = clip_polygons(scene.corners[cols], c, n, plane_eps(scene))
+    f = point_polygon_factor(x[rows][:, None, :], n, poly)[:, 0]
+    fd = f.detach()
+    vis = torch.where(fd > 0, vals / torch.where(fd > 0, fd, torch.ones_like(fd)), torch.zeros_like(fd)).clamp(0, 1)
+    delta_vals = vis * (f - fd)
+    delta = torch.sparse_coo_tensor(torch.stack([rows, cols]), delta_vals, tuple(g.shape)).coalesce()
+    return delta, weights, rows, cols, delta_vals
+
+
+def _direct_delta(op: Gather, scene: Scene, light: Any, h_ray: Tensor, d_ray: Tensor, rows: Tensor | None,
+                  cols: Tensor | None, dvals: Tensor | None, weights: Tensor | None) -> Tensor | None:
+    """Zero-valued ``g0`` per fragment ``[K]`` that carries the gradient of the light (see the module docstring)."""
+    K = op.num_fragments
+    if isinstance(light, str) and light == "uniform":
+        return None
+    if isinstance(light, str) and scene.material_names is not None and light in scene.material_names:
+        light = scene.material == scene.material_names.index(light)
+    t = light if isinstance(light, Tensor) else None
+    per_point = None
+    if isinstance(light, str) and light == "sky" and dvals is not None:
+        per_point = -torch.pi * torch.zeros(op.kernel[1].numel() if op.kernel is not None else K, dtype=dvals.dtype,
+                                            device=dvals.device).index_add(0, rows, dvals)
+    elif t is not None and t.dtype == torch.bool and dvals is not None:
+        keep = t.to(scene.device)[cols]
+        per_point = torch.pi * torch.zeros(op.kernel[1].numel() if op.kernel is not None else K, dtype=dvals.dtype,
+                                           device=dvals.device).index_add(0, rows[keep], dvals[keep])
+    elif t is None and not isinstance(light, str):
+        t = torch.as_tensor(light, dtype=scene.dtype, device=scene.device)
+    if per_point is not None:
+        if weights is None:
+            return per_point
+        return torch.sparse.mm(weights.to(device=per_point.device, dtype=per_point.dtype), per_point[:, None])[:, 0]
+    if t is None or not (t.is_floating_point() and t.ndim == 1 and t.numel() == 3 and scene.num_facets != 3):
+        return None  # a factor per facet: held
+    if op.ray_free is None:
+        return None
+    sun = t.to(device=scene.device, dtype=scene.dtype)
+    sun = sun / sun.norm()
+    cos = (-(scene.normals[h_ray] * sun).sum(-1)).clamp_min(0) * op.ray_free.to(device=scene.device,
+                                                                                 dtype=scene.dtype)
+    g0 = _group_mean(cos, op.ray_fragment.to(scene.device), K)
+    return g0 - g0.detach()
+
+
+def _project(view: Any, points: Tensor) -> tuple[Tensor, Tensor]:
+    """Pixel coordinates ``[N, 2]`` (column, row) and depths ``[N]`` of points ``[N, 3]`` (differentiable)."""
+    pin = view.pinhole(points.dtype)
+    P = (pin.intrinsics[0] @ pin.extrinsics[0]).to(points.device)
+    hom = points @ P[:3, :3].T + P[:3, 3]
+    z = hom[:, 2]
+    return hom[:, :2] / z[:, None], z
+
+
+def _screen_clip(ua: Tensor, ub: Tensor, height: int, width: int) -> tuple[Tensor, Tensor]:
+    """The part ``[s0, s1]`` of each segment ``ua + s (ub − ua)`` inside the image ``[−½, W − ½] × [−½, H − ½]``."""
+    lo, hi = torch.zeros_like(ua[:, 0]), torch.ones_like(ua[:, 0])
+    d = ub - ua
+    for axis, size in ((0, width), (1, height)):
+        lo, hi = clip_interval(lo, hi, ua[:, axis] + 0.5, d[:, axis])
+        lo, hi = clip_interval(lo, hi, size - 0.5 - ua[:, axis], -d[:, axis])
+    return lo, hi
+
+
+def _pixel_pieces(ua: Tensor, ub: Tensor, s0: Tensor, s1: Tensor, ok: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """Split each kept segment's part ``[s0, s1]`` where it crosses a pixel border (``u`` or ``v`` = ``k + ½``):
+    ``(edge [N], s_a [N], s_b [N])``, pieces of positive length, each inside one pixel."""
+    idx = torch.nonzero(ok).reshape(-1)
+    pa, pb = ua[idx] + s0[idx, None] * (ub - ua)[idx], ua[idx] + s1[idx, None] * (ub - ua)[idx]
+    lo = torch.ceil(torch.minimum(pa, pb) - 0.5)
+    count = (torch.floor(torch.maximum(pa, pb) - 0.5) - lo + 1).clamp_min(0).long()  # [E, 2] border lines
+    edges, params = [idx, idx], [s0[idx], s1[idx]]
+    for axis in (0, 1):
+        c = count[:, axis]
+        e = torch.repeat_interleave(torch.arange(idx.numel()), c)
+        k = torch.arange(e.numel()) - torch.repeat_interleave(torch.cumsum(c, 0) - c, c)
+        line = lo[e, axis] + k.double() + 0.5
+        d = (ub - ua)[idx[e], axis]
+        edges.append(idx[e])
+        params.append((line - ua[idx[e], axis]) / torch.where(d != 0, d, torch.ones_like(d)))
+    edge, par = torch.cat(edges), torch.cat(params)
+    order = torch.argsort(par, stable=True)
+    order = order[torch.argsort(edge[order], stable=True)]
+    edge, par = edge[order], par[order]
+    same = edge[1:] == edge[:-1]
+    keep = same & (par[1:] > par[:-1])
+    return edge[:-1][keep], par[:-1][keep], par[1:][keep]
+
+
+def _side_hits(op: Gather, caster: RayCaster, q: Tensor, normals: Tensor) -> Tensor:
+    """The facet hit from its front through image points ``q [N, 2]`` (pixels), ``-1`` for none or a back."""
+    pin = op.view.pinhole()
+    pts = pin.unproject(q[None], torch.ones(1, q.shape[0], 1, dtype=torch.float64))[0]
+    eye = torch.tensor(op.view.eye, dtype=torch.float64)
+    d = pts - eye
+    hit = torch.from_numpy(caster.first_hit(np.broadcast_to(eye.numpy(), d.shape), d.numpy())).long()
+    front = (hit >= 0) & ((normals[hit.clamp_min(0)] * d).sum(-1) < 0)
+    return torch.where(front, hit, torch.full_like(hit, -1))
+
+
+def _fragment_at(op: Gather, pixel: Tensor, facet: Tensor) -> Tensor:
+    """The fragment of (pixel, facet), ``-1`` where there is none (fragments are sorted by pixel, then facet)."""
+    F = op.num_facets
+    keys = op.fragment_pixel.cpu() * F + op.fragment_facet.cpu()
+    key = pixel * F + facet
+    at = torch.searchsorted(keys, key).clamp_max(max(keys.numel() - 1, 0))
+    found = (facet >= 0) & (keys.numel() > 0) & (keys[at] == key)
+    return torch.where(found, at, torch.full_like(at, -1))
+
+
+def _pixel_of(q: Tensor, height: int, width: int) -> Tensor:
+    col = torch.round(q[:, 0]).long().clamp(0, width - 1)
+    row = torch.round(q[:, 1]).long().clamp(0, height - 1)
+    return row * width + col
+
+
+def _edge_samples(op: Gather, scene: Scene, caster: RayCaster, spacing: float) -> tuple[Tensor, ...]:
+    """Edge samples: ``(pixel [S], weight [S] zero-valued, side_fragment [2, S], side_facet [2, S])``."""
+    sc = scene.detach().to(torch.float64).to("cpu")
+    e = mesh_edges(sc, plane_eps(scene))
+    a = scene.corners[e.facet.to(scene.device), e.corner.to(scene.device)]
+    b = scene.corners[e.facet.to(scene.device), ((e.corner + 1) % 4).to(scene.device)]
+    ua, za = _project(op.view, a)
+    ub, zb = _project(op.view, b)
+    H, W = op.height, op.width
+    uad, ubd = ua.detach().double().cpu(), ub.detach().double().cpu()
+    s0, s1 = _screen_clip(uad, ubd, H, W)
+    length = (ubd - uad).norm(dim=-1)
+    ok = (za.detach().cpu() > 0) & (zb.detach().cpu() > 0) & (s1 > s0) & (length > 0)
+    piece_edge, pa, pb = _pixel_pieces(uad, ubd, s0, s1, ok)
+    n = torch.ceil(length[piece_edge] * (pb - pa) / spacing).clamp_min(1).long()
+    piece = torch.repeat_interleave(torch.arange(n.numel()), n)
+    k = torch.arange(piece.numel()) - torch.repeat_interleave(torch.cumsum(n, 0) - n, n)
+    edge = piece_edge[piece]
+    s = pa[piece] + (k.double() + 0.5) * (pb - pa)[piece] / n[piece]
+    dl = length[edge] * (pb - pa)[piece] / n[piece]
+    mid = (pa + pb)[piece] / 2  # the piece's pixel: its middle's (a piece never crosses a pixel border)
+    tang = (ubd - uad)[edge] / length[edge, None]
+    normal = torch.stack([-tang[:, 1], tang[:, 0]], -1)
+    q = uad[edge] + s[:, None] * (ubd - uad)[edge]
+    sides = [_side_hits(op, caster, q - _SIDE * normal, sc.normals), _side_hits(op, caster, q + _SIDE * normal,
+                                                                                  sc.normals)]
+    own = torch.stack([e.facet[edge], e.partner[edge]], 0)
+    seen = ((sides[0][None] == own) | (sides[1][None] == own)).any(0)
+    keep = torch.nonzero(seen).reshape(-1)
+    edge, s, dl, normal, q = edge[keep], s[keep], dl[keep], normal[keep], q[keep]
+    side_facet = torch.stack([sides[0][keep], sides[1][keep]])
+    side_fragment = []
+    for sign, facet in ((-1.0, side_facet[0]), (1.0, side_facet[1])):
+        frag = _fragment_at(op, _pixel_of(q + sign * _SIDE * normal, H, W), facet)
+        deeper = _fragment_at(op, _pixel_of(q + sign * 0.5 * normal, H, W), facet)
+        side_fragment.append(torch.where(frag >= 0, frag, deeper))
+    dev, dt = scene.device, scene.dtype
+    sd, nd = s.to(device=dev, dtype=dt), normal.to(device=dev, dtype=dt)
+    move = ((1 - sd)[:, None] * ua[edge.to(dev)] + sd[:, None] * ub[edge.to(dev)]) * nd
+    v = move.sum(-1)
+    weight = dl.to(device=dev, dtype=dt) * (v - v.detach())
+    q_mid = uad[edge] + mid[keep, None] * (ubd - uad)[edge]
+    return _pixel_of(q_mid, H, W), weight, torch.stack(side_fragment), side_facet
+
+
+def image_gradient(op: Gather, scene: Scene, light: Any = "uniform", *, spacing: float = EDGE_SPACING,
+                   shading: str = "gather") -> ImageGradient:
+    """The zero-valued terms that carry a gathered image's gradient to ``scene``'s corners and a sun's direction.
+
+    Args:
+        op: The view's :class:`~torch_interreflect.camera.Gather`, built from a scene with the same facets.
+        scene: That scene, its corners requiring grad (or not, when only the light's direction does).
+        light: The light the operator was built with; a direction ``[3]`` that requires grad gets the gradient of
+            the per-ray cosines.
+        spacing: Distance between edge samples along a projected edge, in pixels (> 0).
+        shading: ``"gather"`` (the kernel and direct terms and the edges) or ``"flat"`` (the edges only).
+
+    Returns:
+        The :class:`ImageGradient`, for :func:`~torch_interreflect.camera.gathered_radiance`'s ``gradient=``.
+
+    Raises:
+        ShapeError: the scene has not the operator's number of facets.
+        ValueError: a bad ``spacing`` or ``shading``, or a gather operator built for flat shading only.
+
+    Shape:
+        - edge samples ``S`` ≈ the visible edges' length in pixels / ``spacing``; memory O(kernel pairs + S).
+    """
+    if not isinstance(scene, Scene) or scene.num_facets != op.num_facets:
+        got = scene.num_facets if isinstance(scene, Scene) else type(scene).__name__
+        raise ShapeError(f"scene must be a Scene with the operator's {op.num_facets} facets; got {got}")
+    if isinstance(spacing, bool) or not float(spacing) > 0:
+        raise ValueError(f"spacing must be a positive number of pixels; got {spacing!r}")
+    if shading not in ("gather", "flat"):
+        raise ValueError(f"shading must be 'gather' or 'flat'; got {shading!r}")
+    if shading == "gather" and op.gather is None:
+        raise ValueError("this operator was built with shading='flat'; build it with shading='gather'")
+    caster = RayCaster(scene.detach().to(torch.float64).to("cpu"))
+    pixel, weight, side_fragment, side_facet = _edge_samples(op, scene, caster, float(spacing))
+    delta = weights = direct = None
+    if shading == "gather":
+        x_ray, h_ray, d_ray = _hit_points(op, scene)
+        rows = cols = dvals = None
+        if scene.corners.requires_grad:
+            delta, weights, rows, cols, dvals = _kernel_delta(op, scene, x_ray)
+        direct = _direct_delta(op, scene, light, h_ray, d_ray, rows, cols, dvals, weights)
+    dev = scene.device
+    return ImageGradient(delta, weights, direct, pixel.to(dev), weight, side_fragment.to(dev), side_facet.to(dev))
+
+
+def edge_pixels(grad: ImageGradient, fragment_values: Tensor | None, facet_values: Tensor, pixels: int) -> Tensor:
+    """The edge term of an image: zero-valued per pixel, carrying ``∫ (f_a − f_b) v dl`` to the geometry.
+
+    Args:
+        grad: The :class:`ImageGradient`.
+        fragment_values: Radiance (or any per-channel value) per fragment, ``[..., K, C]``; ``None`` for flat
+            shading (the facets' values then stand on both sides).
+        facet_values: Per facet, ``[..., F, C]`` (the value on a side with no fragment of that facet).
+        pixels: ``H · W``.
+
+    Returns:
+        ``[..., H·W, C]``.
+    """
+    sides = []
+    for row in range(2):
+        facet, frag = grad.side_facet[row], grad.side_fragment[row]
+        val = facet_values.index_select(-2, facet.clamp_min(0)) * (facet >= 0).to(facet_values.dtype)[:, None]
+        if fragment_values is not None:
+            fv = fragment_values.index_select(-2, frag.clamp_min(0))
+            val, fv = torch.broadcast_tensors(val, fv)
+            val = torch.where((frag >= 0)[:, None], fv, val)
+        sides.append(val.detach())
+    a, b = torch.broadcast_tensors(*sides)
+    contrib = (a - b) * grad.edge_weight.to(a.dtype)[:, None]
+    out = torch.zeros(*contrib.shape[:-2], pixels, contrib.shape[-1], dtype=contrib.dtype, device=contrib.device)
+    return out.index_add(-2, grad.edge_pixel, contrib)
