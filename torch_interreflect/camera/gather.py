@@ -33,7 +33,7 @@ from ..geometry.raycast import RayCaster
 from ..geometry.scene import Scene
 from ..solver.api import solve
 from .fragments import coarse_points, primary_fragments
-from .image_grad import ImageGradient, edge_pixels
+from .image_grad import ImageGradient, edge_pixels, shadow_pixels
 from .point_kernel import point_form_factors
 from .sensor import Camera
 from .view import View
@@ -359,6 +359,8 @@ def gathered_radiance(op: Gather, reflectance: Tensor, irradiance: Tensor, spd: 
     pixels = _columns(op.pixel_fragments, values)
     if gradient is not None:
         pixels = pixels + edge_pixels(gradient, values, r * E / math.pi, op.height * op.width)
+        if gradient.shadow_pixel.numel():
+            pixels = pixels + shadow_pixels(gradient, r, S, op.height * op.width)
     return _to_image(op, pixels)
 
 

@@ -41,11 +41,12 @@ from ..geometry._polygon import clip_interval, clip_polygons, plane_eps
 from ..geometry.edges import mesh_edges
 from ..geometry.raycast import RayCaster
 from ..geometry.scene import Scene
+from ..geometry.shadows import shadow_segments
 
 if TYPE_CHECKING:
     from .gather import Gather
 
-__all__ = ["EDGE_SPACING", "ImageGradient", "edge_pixels", "image_gradient"]
+__all__ = ["EDGE_SPACING", "ImageGradient", "edge_pixels", "image_gradient", "shadow_pixels"]
 
 #: Default distance between edge samples along a projected edge, in pixels.
 EDGE_SPACING = 0.5
@@ -66,6 +67,8 @@ class ImageGradient:
         edge_weight: ``Δl (v − v.detach())``, the sample's length times its normal speed in the image. ``[S]``.
         side_fragment: The fragment on side ``a`` (row 0) and ``b`` (row 1) of each sample, ``-1`` if none. ``[2, S]``.
         side_facet: The facet hit from its front on each side, ``-1`` for the background or a back. ``[2, S]``.
+        shadow_pixel, shadow_facet: Pixel and receiving facet of each sample of a sun's shadow edges. ``[S2]``.
+        shadow_weight: Its ``Δl (v − v.detach())`` times the facet's cosine and ``lit_a − lit_b``. ``[S2]``.
     """
 
     gather: Tensor | None
@@ -75,10 +78,13 @@ class ImageGradient:
     edge_weight: Tensor
     side_fragment: Tensor
     side_facet: Tensor
+    shadow_pixel: Tensor
+    shadow_weight: Tensor
+    shadow_facet: Tensor
 
 
-def _hit_points(op: Gather, scene: Scene) -> tuple[Tensor, Tensor, Tensor]:
-    """Differentiable hit points of the front rays ``[R, 3]``, their facets ``[R]`` and directions ``[R, 3]``."""
+def _hit_points(op: Gather, scene: Scene) -> tuple[Tensor, Tensor]:
+    """Differentiable hit points of the front rays ``[R, 3]`` and their facets ``[R]``."""
     eye, dirs = op.view.rays(op.supersample)
     ray_index = op.ray_index.cpu()
     d = dirs[ray_index].to(device=scene.device, dtype=scene.dtype)
@@ -86,7 +92,7 @@ def _hit_points(op: Gather, scene: Scene) -> tuple[Tensor, Tensor, Tensor]:
     h = op.fragment_facet.cpu()[op.ray_fragment.cpu()].to(scene.device)
     n, c = scene.normals[h], scene.centroids[h]
     t = ((c - e) * n).sum(-1) / (d * n).sum(-1)
-    return e + t[:, None] * d, h, d
+    return e + t[:, None] * d, h
 
 
 def _group_mean(values: Tensor, group: Tensor, size: int) -> Tensor:
@@ -118,7 +124,7 @@ def _kernel_delta(op: Gather, scene: Scene, x_ray: Tensor) -> tuple[Tensor, Tens
     return delta, weights, rows, cols, delta_vals
 
 
-def _direct_delta(op: Gather, scene: Scene, light: Any, h_ray: Tensor, d_ray: Tensor, rows: Tensor | None,
+def _direct_delta(op: Gather, scene: Scene, light: Any, h_ray: Tensor, rows: Tensor | None,
                   cols: Tensor | None, dvals: Tensor | None, weights: Tensor | None) -> Tensor | None:
     """Zero-valued ``g0`` per fragment ``[K]`` that carries the gradient of the light (see the module docstring)."""
     K = op.num_fragments
@@ -135,17 +141,14 @@ def _direct_delta(op: Gather, scene: Scene, light: Any, h_ray: Tensor, d_ray: Te
         keep = t.to(scene.device)[cols]
         per_point = torch.pi * torch.zeros(op.kernel[1].numel() if op.kernel is not None else K, dtype=dvals.dtype,
                                            device=dvals.device).index_add(0, rows[keep], dvals[keep])
-    elif t is None and not isinstance(light, str):
-        t = torch.as_tensor(light, dtype=scene.dtype, device=scene.device)
     if per_point is not None:
         if weights is None:
             return per_point
         return torch.sparse.mm(weights.to(device=per_point.device, dtype=per_point.dtype), per_point[:, None])[:, 0]
-    if t is None or not (t.is_floating_point() and t.ndim == 1 and t.numel() == 3 and scene.num_facets != 3):
+    sun = _sun_direction(light, scene)
+    if sun is None or op.ray_free is None:
         return None  # a factor per facet: held
-    if op.ray_free is None:
-        return None
-    sun = t.to(device=scene.device, dtype=scene.dtype)
+    sun = sun.to(device=scene.device, dtype=scene.dtype)
     sun = sun / sun.norm()
     cos = (-(scene.normals[h_ray] * sun).sum(-1)).clamp_min(0) * op.ray_free.to(device=scene.device,
                                                                                  dtype=scene.dtype)
@@ -197,15 +200,19 @@ def _pixel_pieces(ua: Tensor, ub: Tensor, s0: Tensor, s1: Tensor, ok: Tensor) ->
     return edge[:-1][keep], par[:-1][keep], par[1:][keep]
 
 
-def _side_hits(op: Gather, caster: RayCaster, q: Tensor, normals: Tensor) -> Tensor:
-    """The facet hit from its front through image points ``q [N, 2]`` (pixels), ``-1`` for none or a back."""
+def _side_hits(op: Gather, caster: RayCaster, q: Tensor, sc: Scene) -> tuple[Tensor, Tensor, Tensor]:
+    """Through image points ``q [N, 2]`` (pixels): the facet hit (``-1`` for none), whether its front was hit, and
+    the hit points ``[N, 3]`` (metres; meaningless where there is no hit)."""
     pin = op.view.pinhole()
     pts = pin.unproject(q[None], torch.ones(1, q.shape[0], 1, dtype=torch.float64))[0]
     eye = torch.tensor(op.view.eye, dtype=torch.float64)
     d = pts - eye
     hit = torch.from_numpy(caster.first_hit(np.broadcast_to(eye.numpy(), d.shape), d.numpy())).long()
-    front = (hit >= 0) & ((normals[hit.clamp_min(0)] * d).sum(-1) < 0)
-    return torch.where(front, hit, torch.full_like(hit, -1))
+    h = hit.clamp_min(0)
+    n = sc.normals[h]
+    nd = (n * d).sum(-1)
+    t = ((sc.centroids[h] - eye) * n).sum(-1) / torch.where(nd != 0, nd, torch.ones_like(nd))
+    return hit, (hit >= 0) & (nd < 0), eye + t[:, None] * d
 
 
 def _fragment_at(op: Gather, pixel: Tensor, facet: Tensor) -> Tensor:
@@ -224,12 +231,26 @@ def _pixel_of(q: Tensor, height: int, width: int) -> Tensor:
     return row * width + col
 
 
-def _edge_samples(op: Gather, scene: Scene, caster: RayCaster, spacing: float) -> tuple[Tensor, ...]:
-    """Edge samples: ``(pixel [S], weight [S] zero-valued, side_fragment [2, S], side_facet [2, S])``."""
-    sc = scene.detach().to(torch.float64).to("cpu")
-    e = mesh_edges(sc, plane_eps(scene))
-    a = scene.corners[e.facet.to(scene.device), e.corner.to(scene.device)]
-    b = scene.corners[e.facet.to(scene.device), ((e.corner + 1) % 4).to(scene.device)]
+@dataclass
+class _Samples:
+    """Samples of projected 3-D segments: the segment, its screen points, their pixel, unit screen normals, and the
+    zero-valued ``Δl (v − v.detach())`` (length times normal speed in the image, pixels²)."""
+
+    segment: Tensor
+    q: Tensor
+    pixel: Tensor
+    normal: Tensor
+    weight: Tensor
+
+    def select(self, keep: Tensor) -> _Samples:
+        return _Samples(self.segment[keep], self.q[keep], self.pixel[keep], self.normal[keep],
+                        self.weight[keep.to(self.weight.device)])
+
+
+def _screen_samples(op: Gather, a: Tensor, b: Tensor, spacing: float) -> _Samples:
+    """Project segments ``a → b`` (``[N, 3]``, differentiable), clip them to the image, split them at pixel borders
+    and sample every piece at ``ceil(length / spacing)`` midpoints. Segments that reach behind the camera are left
+    out."""
     ua, za = _project(op.view, a)
     ub, zb = _project(op.view, b)
     H, W = op.height, op.width
@@ -248,25 +269,73 @@ def _edge_samples(op: Gather, scene: Scene, caster: RayCaster, spacing: float) -
     tang = (ubd - uad)[edge] / length[edge, None]
     normal = torch.stack([-tang[:, 1], tang[:, 0]], -1)
     q = uad[edge] + s[:, None] * (ubd - uad)[edge]
-    sides = [_side_hits(op, caster, q - _SIDE * normal, sc.normals), _side_hits(op, caster, q + _SIDE * normal,
-                                                                                  sc.normals)]
-    own = torch.stack([e.facet[edge], e.partner[edge]], 0)
-    seen = ((sides[0][None] == own) | (sides[1][None] == own)).any(0)
-    keep = torch.nonzero(seen).reshape(-1)
-    edge, s, dl, normal, q = edge[keep], s[keep], dl[keep], normal[keep], q[keep]
-    side_facet = torch.stack([sides[0][keep], sides[1][keep]])
+    dev, dt = a.device, a.dtype
+    sd, nd, ed = s.to(device=dev, dtype=dt), normal.to(device=dev, dtype=dt), edge.to(dev)
+    v = (((1 - sd)[:, None] * ua[ed] + sd[:, None] * ub[ed]) * nd).sum(-1)
+    pixel = _pixel_of(uad[edge] + mid[:, None] * (ubd - uad)[edge], H, W)
+    return _Samples(edge, q, pixel, normal, dl.to(device=dev, dtype=dt) * (v - v.detach()))
+
+
+def _edge_samples(op: Gather, scene: Scene, caster: RayCaster, spacing: float) -> tuple[Tensor, ...]:
+    """Mesh-edge samples: ``(pixel [S], weight [S] zero-valued, side_fragment [2, S], side_facet [2, S])``."""
+    sc = scene.detach().to(torch.float64).to("cpu")
+    e = mesh_edges(sc, plane_eps(scene))
+    dev = scene.device
+    a = scene.corners[e.facet.to(dev), e.corner.to(dev)]
+    b = scene.corners[e.facet.to(dev), ((e.corner + 1) % 4).to(dev)]
+    smp = _screen_samples(op, a, b, spacing)
+    sides = [_side_hits(op, caster, smp.q + sign * _SIDE * smp.normal, sc) for sign in (-1.0, 1.0)]
+    partner = e.partner[smp.segment]
+    own = torch.stack([e.facet[smp.segment], torch.where(partner >= 0, partner, torch.full_like(partner, -2))], 0)
+    keep = torch.nonzero(((sides[0][0][None] == own) | (sides[1][0][None] == own)).any(0)).reshape(-1)
+    smp = smp.select(keep)
+    # the value on a side: a facet's front, or 0 (the background, a facet's back)
+    side_facet = torch.stack([torch.where(front, hit, torch.full_like(hit, -1))[keep] for hit, front, _ in sides])
     side_fragment = []
     for sign, facet in ((-1.0, side_facet[0]), (1.0, side_facet[1])):
-        frag = _fragment_at(op, _pixel_of(q + sign * _SIDE * normal, H, W), facet)
-        deeper = _fragment_at(op, _pixel_of(q + sign * 0.5 * normal, H, W), facet)
+        frag = _fragment_at(op, _pixel_of(smp.q + sign * _SIDE * smp.normal, op.height, op.width), facet)
+        deeper = _fragment_at(op, _pixel_of(smp.q + sign * 0.5 * smp.normal, op.height, op.width), facet)
         side_fragment.append(torch.where(frag >= 0, frag, deeper))
+    return smp.pixel, smp.weight, torch.stack(side_fragment), side_facet
+
+
+def _shadow_samples(op: Gather, scene: Scene, direction: Tensor, caster: RayCaster,
+                    spacing: float) -> tuple[Tensor, Tensor, Tensor]:
+    """A sun's shadow edges seen in the image: ``(pixel [S], weight [S] zero-valued, facet [S])``; the weight
+    includes the facet's cosine and the lit change ``lit_a − lit_b`` across the edge."""
+    sc = scene.detach().to(torch.float64).to("cpu")
     dev, dt = scene.device, scene.dtype
-    sd, nd = s.to(device=dev, dtype=dt), normal.to(device=dev, dtype=dt)
-    move = ((1 - sd)[:, None] * ua[edge.to(dev)] + sd[:, None] * ub[edge.to(dev)]) * nd
-    v = move.sum(-1)
-    weight = dl.to(device=dev, dtype=dt) * (v - v.detach())
-    q_mid = uad[edge] + mid[keep, None] * (ubd - uad)[edge]
-    return _pixel_of(q_mid, H, W), weight, torch.stack(side_fragment), side_facet
+    d_g = direction.to(device=dev, dtype=dt).reshape(3)
+    d_g = d_g / d_g.norm()
+    d = d_g.detach().double().cpu()
+    seen = torch.unique(op.fragment_facet.cpu())
+    facets = seen[(sc.normals[seen] @ d) < 0]
+    parts = shadow_segments(sc, d, facets, plane_eps(sc))
+    empty = torch.zeros(0, dtype=torch.int64, device=dev)
+    if parts.facet.numel() == 0:
+        return empty, torch.zeros(0, dtype=dt, device=dev), empty
+    ef, ec, f = parts.edge_facet.to(dev), parts.edge_corner.to(dev), parts.facet.to(dev)
+    g0, g1 = scene.corners[ef, ec], scene.corners[ef, (ec + 1) % 4]
+    n, o = scene.normals[f], scene.corners[f, 0]
+
+    def on_facet(s: Tensor) -> Tensor:  # the edge point's shadow on the facet's plane, along the light
+        p = g0 + s.to(device=dev, dtype=dt)[:, None] * (g1 - g0)
+        return p - (((p - o) * n).sum(-1) / (n * d_g).sum(-1))[:, None] * d_g
+
+    smp = _screen_samples(op, on_facet(parts.s_a), on_facet(parts.s_b), spacing)
+    rec = parts.facet[smp.segment]
+    lit = []
+    for sign in (-1.0, 1.0):
+        hit, front, x = _side_hits(op, caster, smp.q + sign * _SIDE * smp.normal, sc)
+        on = front & (hit == rec)
+        origin = x + caster.eps * sc.normals[rec]
+        free = torch.from_numpy(caster.first_hit(origin.numpy(), (-d).expand(origin.shape[0], 3).numpy()) < 0)
+        lit.append(torch.where(on, free.double(), torch.full_like(free, float("nan"), dtype=torch.float64)))
+    change = lit[0] - lit[1]  # NaN where a side is not on the receiving facet
+    keep = torch.nonzero(torch.isfinite(change) & (change != 0)).reshape(-1)
+    smp, rec, change = smp.select(keep), rec[keep], change[keep]
+    cos = -(sc.normals[rec] @ d)
+    return smp.pixel, smp.weight * (cos * change).to(device=dev, dtype=dt), rec.to(dev)
 
 
 def image_gradient(op: Gather, scene: Scene, light: Any = "uniform", *, spacing: float = EDGE_SPACING,
@@ -303,14 +372,43 @@ def image_gradient(op: Gather, scene: Scene, light: Any = "uniform", *, spacing:
     caster = RayCaster(scene.detach().to(torch.float64).to("cpu"))
     pixel, weight, side_fragment, side_facet = _edge_samples(op, scene, caster, float(spacing))
     delta = weights = direct = None
+    dev = scene.device
+    shadow = (torch.zeros(0, dtype=torch.int64, device=dev), weight.new_zeros(0),
+              torch.zeros(0, dtype=torch.int64, device=dev))
+    sun = _sun_direction(light, scene)
+    if shading == "gather" and sun is not None and op.ray_free is not None:
+        shadow = _shadow_samples(op, scene, sun, caster, float(spacing))
     if shading == "gather":
-        x_ray, h_ray, d_ray = _hit_points(op, scene)
+        x_ray, h_ray = _hit_points(op, scene)
         rows = cols = dvals = None
         if scene.corners.requires_grad:
             delta, weights, rows, cols, dvals = _kernel_delta(op, scene, x_ray)
-        direct = _direct_delta(op, scene, light, h_ray, d_ray, rows, cols, dvals, weights)
-    dev = scene.device
-    return ImageGradient(delta, weights, direct, pixel.to(dev), weight, side_fragment.to(dev), side_facet.to(dev))
+        direct = _direct_delta(op, scene, light, h_ray, rows, cols, dvals, weights)
+    return ImageGradient(delta, weights, direct, pixel.to(dev), weight, side_fragment.to(dev), side_facet.to(dev),
+                         shadow[0].to(dev), shadow[1], shadow[2].to(dev))
+
+
+def _sun_direction(light: Any, scene: Scene) -> Tensor | None:
+    """The light as a sun direction ``[3]`` (a tensor, possibly requiring grad), or ``None``."""
+    if isinstance(light, str):
+        return None
+    t = light if isinstance(light, Tensor) else torch.as_tensor(light)
+    if t.is_floating_point() and t.ndim == 1 and t.numel() == 3 and scene.num_facets != 3:
+        return t
+    return None
+
+
+def shadow_pixels(grad: ImageGradient, reflectance: Tensor, spd: Tensor, pixels: int) -> Tensor:
+    """The sun's shadow-edge term of a gathered radiance image: zero-valued ``[..., H·W, L]``.
+
+    Args:
+        grad: The :class:`ImageGradient`.
+        reflectance: ``[..., F, L]``. spd: the sun's spectrum ``[..., L]``. pixels: ``H · W``.
+    """
+    r = reflectance.index_select(-2, grad.shadow_facet).detach()
+    contrib = r * spd.detach()[..., None, :] * grad.shadow_weight.to(r.dtype)[:, None] / torch.pi
+    out = torch.zeros(*contrib.shape[:-2], pixels, contrib.shape[-1], dtype=contrib.dtype, device=contrib.device)
+    return out.index_add(-2, grad.shadow_pixel, contrib)
 
 
 def edge_pixels(grad: ImageGradient, fragment_values: Tensor | None, facet_values: Tensor, pixels: int) -> Tensor:
