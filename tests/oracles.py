@@ -58,3 +58,42 @@ def per_column_solve(f: torch.Tensor, r: torch.Tensor, e0: torch.Tensor) -> torc
     cols_e = e0.movedim(-2, -1).reshape(-1, f.shape[0])
     out = torch.stack([torch.linalg.solve(eye - f * rc, ec) for rc, ec in zip(cols_r, cols_e, strict=True)])
     return out.reshape(*r.shape[:-2], r.shape[-1], r.shape[-2]).movedim(-1, -2)
+
+
+def polygon_pixel_areas(poly: torch.Tensor, height: int, width: int) -> torch.Tensor:
+    """Exact area of a convex image-space polygon ``[K, 2]`` (pixel coordinates, column then row) inside each pixel
+    ``[H, W]`` (pixel ``(v, u)`` covers ``[u − ½, u + ½] × [v − ½, v + ½]``): Sutherland–Hodgman clipping to each
+    pixel square, then the shoelace formula. Float64, slow (a test oracle)."""
+    pts = [tuple(float(x) for x in p) for p in poly.detach().double()]
+    out = torch.zeros(height, width, dtype=F64)
+    u0, v0 = min(p[0] for p in pts), min(p[1] for p in pts)
+    u1, v1 = max(p[0] for p in pts), max(p[1] for p in pts)
+    for v in range(max(0, int(v0 + 0.5) - 1), min(height, int(v1 + 0.5) + 2)):
+        for u in range(max(0, int(u0 + 0.5) - 1), min(width, int(u1 + 0.5) + 2)):
+            clipped = pts
+            for axis, bound, keep_above in ((0, u - 0.5, True), (0, u + 0.5, False), (1, v - 0.5, True),
+                                            (1, v + 0.5, False)):
+                def inside(p, a=axis, b=bound, k=keep_above):
+                    return p[a] >= b if k else p[a] <= b
+
+                def cut(p, q, a=axis, b=bound):
+                    t = (b - p[a]) / (q[a] - p[a])
+                    return (p[0] + t * (q[0] - p[0]), p[1] + t * (q[1] - p[1]))
+
+                nxt = []
+                for i, q in enumerate(clipped):
+                    p = clipped[i - 1]
+                    if inside(q):
+                        if not inside(p):
+                            nxt.append(cut(p, q))
+                        nxt.append(q)
+                    elif inside(p):
+                        nxt.append(cut(p, q))
+                clipped = nxt
+                if not clipped:
+                    break
+            if len(clipped) >= 3:
+                xs = [p[0] for p in clipped]
+                ys = [p[1] for p in clipped]
+                out[v, u] = 0.5 * abs(sum(xs[i - 1] * ys[i] - xs[i] * ys[i - 1] for i in range(len(xs))))
+    return out

@@ -140,9 +140,9 @@ def sun_shadow_gradient(scene: Scene, direction: Tensor, facets: Tensor, *, edge
     ``u``: its velocity relative to the facet's own points). ``Γ`` is found by
     :func:`~torch_interreflect.geometry.shadows.shadow_segments` (boundary and crease edges of the mesh, the part
     in front of the facet, projected along the light onto its plane and clipped to it), ``edge_order`` Gauss points
-    per part, kept where a ray toward the light is blocked on exactly one side. The facet's own uneven stretching (a corner moving) changes
-    its lit share too: ``Σ_c dJ_c (V_c − lit) / A`` over 32 × 32 cells (zero for affine motion). Both are added
-    with value zero (edge sampling).
+    per part, kept where a ray toward the light is blocked on exactly one side. The facet's own uneven stretching
+    (a corner moving) changes its lit share too: ``Σ_c dJ_c (V_c − lit) / A`` over 32 × 32 cells (zero for affine
+    motion). Both are added with value zero (edge sampling).
 
     Args:
         scene: The scene (its corners may require grad).

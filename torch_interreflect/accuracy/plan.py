@@ -13,10 +13,10 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from ..camera.gather import render_view
+from ..camera.rendering import render_view
 from ..camera.sensor import Camera
 from ..camera.view import View
-from ..errors import AccuracyWarning, GradientWarning, ShapeError, ValueRangeError
+from ..errors import AccuracyWarning, ShapeError, ValueRangeError
 from ..formfactors.operator import FormFactors
 from ..formfactors.quadrature import form_factors
 from ..geometry._polygon import bilinear, bilinear_coordinates
@@ -77,14 +77,19 @@ class Plan:
             raise ShapeError(f"for_geometry needs the plan's {self.scene.num_facets} facets (same kinds, same order); "
                              f"got {scene.num_facets}")
         user = self.leaf_user.to(scene.device)
-        uv = bilinear_coordinates(self.scene.corners[user], self.leaves.corners)  # [n, 4, 2], fixed
-        parent = scene.corners[user]
-        corners = bilinear(parent, uv[..., 0], uv[..., 1])[0]  # [n, 4, 3], differentiable in scene.corners
-        leaves = Scene.from_parts(corners, self.leaves.is_triangle, self.leaves.material, self.leaves.material_names)
+        leaves = self._moved_leaves(scene)
         K = form_factors(leaves, quadrature_tol=self.report.quadrature_tol, progress=False)
         g = light_factor(self.light, leaves, K, user, scene.num_facets)
         return Plan(scene, leaves, self.leaf_user, K, g, self.grid, self.nodes, self.method, self.bounces,
                     self.solver_tol, self.report, self.light)
+
+    def _moved_leaves(self, scene: Scene) -> Scene:
+        """The leaves at ``scene``'s corners: each keeps its bilinear coordinates in its user facet (differentiable
+        in ``scene.corners``)."""
+        user = self.leaf_user.to(scene.device)
+        uv = bilinear_coordinates(self.scene.corners[user].detach(), self.leaves.corners.detach())  # [n, 4, 2], fixed
+        corners = bilinear(scene.corners[user], uv[..., 0], uv[..., 1])[0]  # [n, 4, 3]
+        return Scene.from_parts(corners, self.leaves.is_triangle, self.leaves.material, self.leaves.material_names)
 
     def apply(
         self,
@@ -115,10 +120,11 @@ class Plan:
             (:meth:`for_geometry`) and the form factors, light factor and areas carry the gradient of the moved
             leaves while their values stay the plan's. Ray-cast visibility and sun shadows carry the gradient of
             their moving shadow edges as in :func:`~torch_interreflect.form_factors` and
-            :func:`~torch_interreflect.lights.directional`; the sky's ray-cast open fraction does not. With a
-            ``view`` the image's per-pixel kernel (including the sun's per-pixel cosines) is held fixed (a
-            :class:`~torch_interreflect.errors.GradientWarning` says so). Memory grows with the leaves' pairs (the
-            form factors are rebuilt densely).
+            :func:`~torch_interreflect.lights.directional`. With a ``view`` the image passes them too: hit points,
+            per-pixel kernel, per-pixel sun cosines, and the edges of silhouettes, facets and sun shadows in the
+            image (:mod:`~torch_interreflect.camera.image_grad`; a
+            :class:`~torch_interreflect.errors.GradientWarning` names what is held). Memory grows with the leaves'
+            pairs (the form factors are rebuilt densely).
 
         Shape:
             - reflectance: ``[..., F, L]`` or ``[..., F]``; illuminant: ``[..., L]``
@@ -144,12 +150,12 @@ class Plan:
             rgb = area_average(camera(r[..., user, :] * E_leaf / math.pi), user, areas, F)
         image = None
         if view is not None:
-            if K.matrix.requires_grad or g.requires_grad:
-                warnings.warn("render: the image's gradient reaches the geometry and the light's direction through "
-                              "the solved leaves' light only; the per-pixel kernel (hit points, point form factors, "
-                              "the sun's cosines and shadows per pixel) is held fixed", GradientWarning, stacklevel=2)
+            moved = None
+            if torch.is_grad_enabled() and self.scene.corners.requires_grad and not self.leaves.corners.requires_grad:
+                moved = self._moved_leaves(self.scene)  # the image's gradient to the corners (image_grad)
             r_leaf = r[..., user, :].expand(*E_leaf.shape[:-2], -1, -1)
-            image = render_view(self.leaves, r_leaf, E_leaf, S, camera, view, self._leaf_light(), shading=shading)
+            image = render_view(self.leaves, r_leaf, E_leaf, S, camera, view, self._leaf_light(), shading=shading,
+                                geometry=moved)
         return RenderResult(E, r * E / math.pi, rgb, self.report, image)
 
     def _geometry(self) -> tuple[FormFactors, Tensor, Tensor]:

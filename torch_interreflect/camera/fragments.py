@@ -78,5 +78,6 @@ def coarse_points(frag: dict[str, Tensor], height: int, width: int, num_facets: 
             vals.append(w[ok])
     r, c, v = torch.cat(rows), torch.cat(cols), torch.cat(vals)
     v = v / torch.zeros(pix.numel(), dtype=torch.float64).index_add_(0, r, v)[r]
-    weights = torch.sparse_coo_tensor(torch.stack([r, c]), v, (pix.numel(), keys.numel())).coalesce()
+    weights = torch.sparse_coo_tensor(torch.stack([r, c]), v, (pix.numel(), keys.numel()), check_invariants=False)
+    weights = weights.coalesce()
     return centres, keys % F, weights, inv

@@ -33,7 +33,7 @@ from ..geometry.raycast import RayCaster
 from ..geometry.scene import Scene
 from ..solver.api import solve
 from .fragments import coarse_points, primary_fragments
-from .image_grad import ImageGradient, edge_pixels, shadow_pixels
+from .image_terms import ImageGradient, edge_pixels, shadow_pixels
 from .point_kernel import point_form_factors
 from .sensor import Camera
 from .view import View
@@ -44,7 +44,6 @@ __all__ = [
     "gathered_image",
     "gathered_radiance",
     "mix_direct",
-    "render_view",
     "source_irradiance",
 ]
 
@@ -53,8 +52,6 @@ CACHE_SIZE = 8
 _CACHE: OrderedDict[tuple, Gather] = OrderedDict()
 
 
-# ------------------------------------------------------------------------------------------- point kernel
-# ------------------------------------------------------------------------------------------- fragments
 def _light_key(light: Any) -> Any:
     if isinstance(light, str):
         return light
@@ -238,6 +235,7 @@ def gather_operator(
     if isinstance(stride, bool) or int(stride) != stride or int(stride) < 1:
         raise ValueError(f"stride must be an integer >= 1; got {stride!r}")
     key = (*_cache_key(scene, view, light, int(supersample), int(samples), int(seed)), int(stride))
+    scene = scene.detach()  # ray casting and the kernel are constants of the geometry (see image_grad for its gradient)
     op = _CACHE.get(key) if cache else None
     if op is None:
         t0 = time.perf_counter()
@@ -391,22 +389,6 @@ def gathered_image(op: Gather, reflectance: Tensor, irradiance: Tensor, spd: Ten
                             gradient=gradient)  # [..., L, H, W]
     rgb = camera(rad.movedim(-3, -1))  # [..., H, W, C]
     return rgb.movedim(-1, -3)
-
-
-def render_view(scene: Scene, reflectance: Tensor, irradiance: Tensor, spd: Tensor | None, camera: Camera | None,
-                view: View, light: str | Tensor | Sequence[float] = "uniform", *, shading: str = "gather",
-                supersample: int = 3, samples: int = 4) -> Tensor:
-    """One call from solved facets to an image: the cached :func:`gather_operator`, then the image.
-
-    ``reflectance``, ``irradiance`` (solved for ``E0 = g ⊗ spd``, ``g`` the light's geometric factor), ``spd`` and
-    ``shading`` as for :func:`gathered_radiance`; ``view``, ``light``, ``supersample`` and ``samples`` as for
-    :func:`gather_operator`. With a :class:`~torch_interreflect.camera.Camera` the result is camera RGB
-    ``[..., C, H, W]`` (:func:`gathered_image`), with ``camera=None`` spectral radiance ``[..., L, H, W]``.
-    """
-    op = gather_operator(scene, view, light, supersample=supersample, samples=samples, shading=shading)
-    if camera is None:
-        return gathered_radiance(op, reflectance, irradiance, spd, shading=shading)
-    return gathered_image(op, reflectance, irradiance, spd, camera, shading=shading)
 
 
 def source_irradiance(form_factors: Any, reflectance: Tensor, E0: Tensor, bounces: int | None = None,

@@ -28,59 +28,30 @@ and edges that cross the camera's plane.
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 import torch
 from torch import Tensor
 
-from ..errors import ShapeError
+from ..errors import GradientWarning, ShapeError
 from ..formfactors.contour import point_polygon_factor
 from ..geometry._polygon import clip_interval, clip_polygons, plane_eps
 from ..geometry.edges import mesh_edges
 from ..geometry.raycast import RayCaster
 from ..geometry.scene import Scene
 from ..geometry.shadows import shadow_segments
+from .gather import Gather
+from .image_terms import ImageGradient
 
-if TYPE_CHECKING:
-    from .gather import Gather
-
-__all__ = ["EDGE_SPACING", "ImageGradient", "edge_pixels", "image_gradient", "shadow_pixels"]
+__all__ = ["EDGE_SPACING", "image_gradient"]
 
 #: Default distance between edge samples along a projected edge, in pixels.
 EDGE_SPACING = 0.5
 #: Offset of the two side rays of an edge sample from the edge, in pixels.
 _SIDE = 1e-2
-
-
-@dataclass
-class ImageGradient:
-    """The zero-valued terms that carry a gathered image's gradient (built by :func:`image_gradient`).
-
-    Attributes:
-        gather: ``V (F(x → j) − F(x → j).detach())`` at the gather points. Sparse COO ``[Kp, F]`` (``None`` for flat
-            shading).
-        weights: Sparse ``[K, Kp]`` that carry gather points to fragments (``stride > 1``), or ``None`` (``Kp = K``).
-        direct: The same for ``g0`` per fragment. ``[K]`` (``None`` when nothing moves it).
-        edge_pixel: The pixel (``row · W + column``) of each edge sample. ``[S]`` int64.
-        edge_weight: ``Δl (v − v.detach())``, the sample's length times its normal speed in the image. ``[S]``.
-        side_fragment: The fragment on side ``a`` (row 0) and ``b`` (row 1) of each sample, ``-1`` if none. ``[2, S]``.
-        side_facet: The facet hit from its front on each side, ``-1`` for the background or a back. ``[2, S]``.
-        shadow_pixel, shadow_facet: Pixel and receiving facet of each sample of a sun's shadow edges. ``[S2]``.
-        shadow_weight: Its ``Δl (v − v.detach())`` times the facet's cosine and ``lit_a − lit_b``. ``[S2]``.
-    """
-
-    gather: Tensor | None
-    weights: Tensor | None
-    direct: Tensor | None
-    edge_pixel: Tensor
-    edge_weight: Tensor
-    side_fragment: Tensor
-    side_facet: Tensor
-    shadow_pixel: Tensor
-    shadow_weight: Tensor
-    shadow_facet: Tensor
 
 
 def _hit_points(op: Gather, scene: Scene) -> tuple[Tensor, Tensor]:
@@ -120,7 +91,8 @@ def _kernel_delta(op: Gather, scene: Scene, x_ray: Tensor) -> tuple[Tensor, Tens
     fd = f.detach()
     vis = torch.where(fd > 0, vals / torch.where(fd > 0, fd, torch.ones_like(fd)), torch.zeros_like(fd)).clamp(0, 1)
     delta_vals = vis * (f - fd)
-    delta = torch.sparse_coo_tensor(torch.stack([rows, cols]), delta_vals, tuple(g.shape)).coalesce()
+    delta = torch.sparse_coo_tensor(torch.stack([rows, cols]), delta_vals, tuple(g.shape), check_invariants=False)
+    delta = delta.coalesce()
     return delta, weights, rows, cols, delta_vals
 
 
@@ -369,6 +341,12 @@ def image_gradient(op: Gather, scene: Scene, light: Any = "uniform", *, spacing:
         raise ValueError(f"shading must be 'gather' or 'flat'; got {shading!r}")
     if shading == "gather" and op.gather is None:
         raise ValueError("this operator was built with shading='flat'; build it with shading='gather'")
+    held = []
+    if shading == "gather" and scene.corners.requires_grad and op.info.get("rays", 0):
+        held.append("the per-pixel visibility of the pairs a third facet could block")
+    if held:
+        warnings.warn(f"image_gradient: {'; '.join(held)} is held fixed (its changes inside the image carry no "
+                      "gradient)", GradientWarning, stacklevel=3)
     caster = RayCaster(scene.detach().to(torch.float64).to("cpu"))
     pixel, weight, side_fragment, side_facet = _edge_samples(op, scene, caster, float(spacing))
     delta = weights = direct = None
@@ -396,44 +374,3 @@ def _sun_direction(light: Any, scene: Scene) -> Tensor | None:
     if t.is_floating_point() and t.ndim == 1 and t.numel() == 3 and scene.num_facets != 3:
         return t
     return None
-
-
-def shadow_pixels(grad: ImageGradient, reflectance: Tensor, spd: Tensor, pixels: int) -> Tensor:
-    """The sun's shadow-edge term of a gathered radiance image: zero-valued ``[..., H·W, L]``.
-
-    Args:
-        grad: The :class:`ImageGradient`.
-        reflectance: ``[..., F, L]``. spd: the sun's spectrum ``[..., L]``. pixels: ``H · W``.
-    """
-    r = reflectance.index_select(-2, grad.shadow_facet).detach()
-    contrib = r * spd.detach()[..., None, :] * grad.shadow_weight.to(r.dtype)[:, None] / torch.pi
-    out = torch.zeros(*contrib.shape[:-2], pixels, contrib.shape[-1], dtype=contrib.dtype, device=contrib.device)
-    return out.index_add(-2, grad.shadow_pixel, contrib)
-
-
-def edge_pixels(grad: ImageGradient, fragment_values: Tensor | None, facet_values: Tensor, pixels: int) -> Tensor:
-    """The edge term of an image: zero-valued per pixel, carrying ``∫ (f_a − f_b) v dl`` to the geometry.
-
-    Args:
-        grad: The :class:`ImageGradient`.
-        fragment_values: Radiance (or any per-channel value) per fragment, ``[..., K, C]``; ``None`` for flat
-            shading (the facets' values then stand on both sides).
-        facet_values: Per facet, ``[..., F, C]`` (the value on a side with no fragment of that facet).
-        pixels: ``H · W``.
-
-    Returns:
-        ``[..., H·W, C]``.
-    """
-    sides = []
-    for row in range(2):
-        facet, frag = grad.side_facet[row], grad.side_fragment[row]
-        val = facet_values.index_select(-2, facet.clamp_min(0)) * (facet >= 0).to(facet_values.dtype)[:, None]
-        if fragment_values is not None:
-            fv = fragment_values.index_select(-2, frag.clamp_min(0))
-            val, fv = torch.broadcast_tensors(val, fv)
-            val = torch.where((frag >= 0)[:, None], fv, val)
-        sides.append(val.detach())
-    a, b = torch.broadcast_tensors(*sides)
-    contrib = (a - b) * grad.edge_weight.to(a.dtype)[:, None]
-    out = torch.zeros(*contrib.shape[:-2], pixels, contrib.shape[-1], dtype=contrib.dtype, device=contrib.device)
-    return out.index_add(-2, grad.edge_pixel, contrib)

@@ -19,7 +19,7 @@ import torch
 from tqdm.auto import tqdm
 
 from .. import lights, spectral
-from ..camera.gather import render_view
+from ..camera.rendering import render_view
 from ..camera.sensor import Camera
 from ..camera.view import View
 from ..formfactors.quadrature import form_factors

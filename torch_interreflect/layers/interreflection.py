@@ -23,9 +23,10 @@ from .. import spectral
 from ..accuracy.plan import plan
 from ..camera.facet_rgb import facet_rgb
 from ..camera.gather import Gather, gather_operator, gathered_image, source_irradiance
+from ..camera.image_grad import ImageGradient, image_gradient
 from ..camera.sensor import Camera
 from ..camera.view import View
-from ..errors import GradientWarning, ShapeError
+from ..errors import ShapeError
 from ..formfactors.operator import FormFactors
 from ..formfactors.quadrature import form_factors as _compute_form_factors
 from ..geometry.scene import Scene, area_average
@@ -45,8 +46,8 @@ class Interreflection(nn.Module):
     adjoint of :func:`~torch_interreflect.solve`. Built from a scene whose corners require grad (e.g.
     ``ti.scenes.v_groove(angle)`` with a tensor angle), the form factors and the light factor keep their graph, so
     the output also passes gradients to the geometry (build the layer again after each step that changes it; see
-    :func:`torch_interreflect.form_factors` for what the gradient includes). Not with ``accuracy=`` (the refinement
-    plan is detached).
+    :func:`torch_interreflect.form_factors` for what the gradient includes); with ``view=`` the images do too
+    (:mod:`~torch_interreflect.camera.image_grad`). Not with ``accuracy=`` (the refinement plan is detached).
 
     Args:
         scene_or_form_factors: A :class:`~torch_interreflect.Scene` (its form factors are computed with default
@@ -149,6 +150,7 @@ class Interreflection(nn.Module):
         self._register(ff, scene, n_facets, refined, light, shadows)
         self.shading = shading
         self.gather_view: Gather | None = None
+        self.image_gradient: ImageGradient | None = None
         if view is not None:
             if scene is None or projection is not None or accuracy is not None:
                 raise ValueError("view= needs a Scene and goes without projection= and accuracy= (for a refined "
@@ -156,6 +158,10 @@ class Interreflection(nn.Module):
             if shading not in ("gather", "flat"):
                 raise ValueError(f"shading must be 'gather' or 'flat'; got {shading!r}")
             self.gather_view = gather_operator(scene, view, light, shading=shading).to(ff.device)
+            light_grad = isinstance(light, Tensor) and light.requires_grad
+            if torch.is_grad_enabled() and (scene.corners.requires_grad or light_grad):
+                # the image's own gradient to the geometry (and a sun direction): kept, like the matrix's graph
+                self.image_gradient = image_gradient(self.gather_view, scene, light, shading=shading)
 
     def _register(
         self, ff: FormFactors, scene: Scene | None, n_facets: int, refined: Any, light: Any, shadows: str | bool
@@ -286,11 +292,8 @@ class Interreflection(nn.Module):
         rgb = self.camera(radiance(E, r))
         if self.shading == "gather" and self.bounces is not None:  # the gather adds the last bounce
             E = source_irradiance(self.form_factors, r, e0, self.bounces, tol=self.tol, method=self.method)
-        if self.matrix.requires_grad or self.light_factor.requires_grad:
-            warnings.warn("Interreflection(view=): the image's gradient reaches the geometry (and a light direction) "
-                          "through the solved facets' light only; the per-pixel kernel is held fixed",
-                          GradientWarning, stacklevel=3)
-        image = gathered_image(self.gather_view, r, E, illuminant, self.camera, shading=self.shading)
+        image = gathered_image(self.gather_view, r, E, illuminant, self.camera, shading=self.shading,
+                               gradient=self.image_gradient)
         return rgb, image
 
     def extra_repr(self) -> str:

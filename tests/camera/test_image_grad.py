@@ -1,0 +1,247 @@
+"""Gradients of gathered images with respect to the corners and a sun's direction (camera.image_grad).
+
+Oracles:
+- *Exact coverage*: an image of flat-valued polygons, integrated exactly over each pixel
+  (:func:`tests.oracles.polygon_pixel_areas`); its central differences (step 1e-5 to 1e-6) are exact up to
+  rounding. The edge term must match them, since the supersampled image's own differences are steps.
+- *Interior pixels*: pixels covered by one facet and crossed by no edge, where the gathered value is smooth in the
+  geometry; a quadratic fitted to 5 renders over ±0.02°.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import warnings
+
+import numpy as np
+import pytest
+import torch
+
+import torch_interreflect as ti
+from tests.oracles import polygon_pixel_areas
+from torch_interreflect.camera import View, gather_operator, gathered_radiance
+from torch_interreflect.camera.image_grad import image_gradient
+from torch_interreflect.errors import GradientWarning, ShapeError
+
+F64 = torch.float64
+#: inside a V-groove, both plates seen from their front, no facet hiding another
+GROOVE_VIEW = View((0.08, 0.045, 0.05), (0.02, 0.045, 0.01), up=(0, 1, 0), fov_deg=60, height=16, width=16)
+
+
+def _weights(h: int, w: int) -> torch.Tensor:
+    return torch.rand(h, w, dtype=F64, generator=torch.Generator().manual_seed(0))
+
+
+def _exact_image(corners: torch.Tensor, values: list[float], view: View) -> torch.Tensor:
+    """Flat-valued facets (none hiding another) integrated exactly over the pixels."""
+    out = torch.zeros(view.height, view.width, dtype=F64)
+    pin = view.pinhole()
+    for quad, value in zip(corners.detach().double(), values, strict=True):
+        out += value * polygon_pixel_areas(pin.project(quad), view.height, view.width)
+    return out
+
+
+def _square(a: torch.Tensor, shift: torch.Tensor) -> ti.Scene:
+    z = torch.zeros((), dtype=a.dtype)
+    c = torch.stack([torch.stack([-a + shift, -a, z]), torch.stack([a + shift, -a, z]),
+                     torch.stack([a + shift, a, z]), torch.stack([-a + shift, a, z])])
+    return ti.Scene.from_polygons(c[None])
+
+
+def _image(scene: ti.Scene, view: View, r: torch.Tensor, E: torch.Tensor, light="uniform", *, shading="flat",
+           grad=True, **kw) -> torch.Tensor:
+    light_d = light.detach() if isinstance(light, torch.Tensor) else light
+    op = gather_operator(scene, view, light_d, shading=shading, cache=False, **kw)
+    g = image_gradient(op, scene, light, shading=shading) if grad else None
+    return gathered_radiance(op, r, E, torch.ones(1, dtype=r.dtype), shading=shading, gradient=g)[0]
+
+
+@pytest.mark.parametrize("shading", ["flat", "gather"])
+def test_square_edges_match_exact_coverage(shading):
+    """A lone square seen head-on: d/d(size) and d/d(shift) of a weighted image equal the exact coverage's
+    differences (measured 1e-11 and 4e-11 relative); the image's values are unchanged by the gradient terms."""
+    a = torch.tensor(0.3, dtype=F64, requires_grad=True)
+    s = torch.tensor(0.05, dtype=F64, requires_grad=True)
+    view = View((0, 0, 2.0), (0, 0, 0), up=(0, 1, 0), fov_deg=40, height=32, width=32)
+    w = _weights(32, 32)
+    r, E = torch.full((1, 1), 0.5, dtype=F64), torch.ones(1, 1, dtype=F64)
+    img = _image(_square(a, s), view, r, E, shading=shading)
+    assert torch.equal(img, _image(_square(a, s), view, r, E, shading=shading, grad=False))
+    g = torch.autograd.grad((img * w).sum(), [a, s])
+    value = 0.5 / math.pi
+
+    def exact(x: float, y: float) -> float:
+        sc = _square(torch.tensor(x, dtype=F64), torch.tensor(y, dtype=F64))
+        return float((_exact_image(sc.corners, [value], view) * w).sum())
+
+    h = 1e-6
+    fd = [(exact(0.3 + h, 0.05) - exact(0.3 - h, 0.05)) / (2 * h),
+          (exact(0.3, 0.05 + h) - exact(0.3, 0.05 - h)) / (2 * h)]
+    for got, want in zip(g, fd, strict=True):
+        assert abs(want) > 1.0
+        assert abs(float(got) - want) <= 2e-10 * abs(want), (float(got), want)
+
+
+def test_float32_edges_agree_with_float64():
+    w = _weights(32, 32)
+    view = View((0, 0, 2.0), (0, 0, 0), up=(0, 1, 0), fov_deg=40, height=32, width=32)
+    out = []
+    for dt in (torch.float32, F64):
+        a = torch.tensor(0.3, dtype=dt, requires_grad=True)
+        img = _image(_square(a, torch.tensor(0.05, dtype=dt)), view, torch.full((1, 1), 0.5, dtype=dt),
+                     torch.ones(1, 1, dtype=dt))
+        assert img.dtype == dt
+        (g,) = torch.autograd.grad((img * w.to(dt)).sum(), a)
+        assert g.dtype == dt
+        out.append(float(g))
+    assert abs(out[0] - out[1]) <= 1e-6 * abs(out[1]), out  # measured 1.5e-7
+
+
+def test_groove_angle_matches_exact_coverage():
+    """Three facets per plate side: the opening angle moves the outer facets' edges, the borders between facets of
+    different reflectance included (measured 1.8e-9 relative)."""
+    ang = torch.tensor(60.0, dtype=F64, requires_grad=True)
+    sc = ti.scenes.v_groove(ang, divisions=3)
+    F = sc.num_facets
+    r = torch.linspace(0.3, 0.9, F, dtype=F64)[:, None]
+    w = _weights(16, 16)
+    img = _image(sc, GROOVE_VIEW, r, torch.ones(F, 1, dtype=F64))
+    (g,) = torch.autograd.grad((img * w).sum(), ang)
+    vals = (r[:, 0] / math.pi).tolist()
+
+    def exact(x: float) -> float:
+        return float((_exact_image(ti.scenes.v_groove(x, divisions=3, dtype=F64).corners, vals, GROOVE_VIEW)
+                      * w).sum())
+
+    h = 1e-5
+    fd = (exact(60.0 + h) - exact(60.0 - h)) / (2 * h)
+    assert abs(fd) > 1e-2
+    assert abs(float(g) - fd) <= 1e-8 * abs(fd), (float(g), fd)
+
+
+def _interior_mask(op, grad, stride: int = 1) -> torch.Tensor:
+    """Pixels covered by one fragment of one facet and crossed by no edge sample, ``stride`` pixels away from any
+    other pixel (the gather points of ``stride > 1`` average over blocks of pixels)."""
+    full = torch.zeros(op.height * op.width, dtype=torch.bool)
+    share = op.pixel_fragments.to_dense().max(1).values
+    full[share == 1] = True
+    full[grad.edge_pixel] = False
+    bad = (~full).reshape(1, 1, op.height, op.width).double()
+    k = 2 * (stride - 1) + 1
+    return torch.nn.functional.max_pool2d(bad, k, stride=1, padding=k // 2)[0, 0] == 0
+
+
+@pytest.mark.parametrize("light", ["uniform", "sky"])
+@pytest.mark.parametrize("stride", [1, 2])
+def test_gathered_interior_follows_the_angle(light, stride):
+    """Inside the facets a gathered pixel moves with its hit point, the point form factors and the solved light
+    (the sky's open part too); with ``stride=2`` through the interpolated gather points (measured 5e-8 to
+    7e-8 relative)."""
+    view = View((0.04, 0.03, 0.12), (0.02, 0.03, 0.0), up=(0, 1, 0), fov_deg=50, height=24, width=24)
+    w = _weights(24, 24)
+
+    def render(x: float, grad: bool):
+        ang = torch.tensor(x, dtype=F64, requires_grad=grad)
+        sc = ti.scenes.v_groove(ang, divisions=2)
+        ff = ti.form_factors(sc)
+        r = torch.linspace(0.3, 0.9, sc.num_facets, dtype=F64)[:, None]
+        g = ti.lights.light_geometry(sc, ff, light)
+        E = ti.solve(ff, r, g[:, None])
+        op = gather_operator(sc, view, light, cache=False, stride=stride)
+        gr = image_gradient(op, sc, light) if grad else None
+        return gathered_radiance(op, r, E, torch.ones(1, dtype=F64), gradient=gr)[0], ang, op, gr
+
+    img, ang, op, gr = render(60.0, True)
+    m = _interior_mask(op, gr, stride).to(F64)
+    assert m.sum() > 40
+    (g,) = torch.autograd.grad((img * w * m).sum(), ang)
+    hs = np.linspace(-0.02, 0.02, 5)
+    vals = [float((render(60.0 + h, False)[0] * w * m).sum()) for h in hs]
+    slope = float(np.polyfit(hs, vals, 2)[1])
+    assert abs(slope) > 1e-3
+    assert abs(float(g) - slope) <= 3e-7 * abs(slope), (float(g), slope)
+
+
+def _floor_and_blocker(shift: torch.Tensor) -> ti.Scene:
+    """A 4 m floor (up) and a 0.4 m plate 0.5 m above it (facing down: seen from above, its back is black)."""
+    z = torch.zeros((), dtype=F64)
+    floor = torch.tensor([[-2.0, -2, 0], [2, -2, 0], [2, 2, 0], [-2, 2, 0]], dtype=F64) + 0 * shift
+    b = torch.stack([torch.stack([-0.2 + shift, -0.2 + z, 0.5 + z]), torch.stack([-0.2 + shift, 0.2 + z, 0.5 + z]),
+                     torch.stack([0.2 + shift, 0.2 + z, 0.5 + z]), torch.stack([0.2 + shift, -0.2 + z, 0.5 + z])])
+    return ti.Scene.from_polygons(torch.stack([floor, b]))
+
+
+TOP_VIEW = View((0.0, 0.0, 3.0), (0.0, 0.0, 0.0), up=(0, 1, 0), fov_deg=80, height=24, width=24)
+
+
+def _exact_sunlit_floor(shift: float, d: list[float], cos_of: list[float] | None = None) -> torch.Tensor:
+    """Direct light only: the floor's value times its area minus the shadow and the blocker (disjoint here)."""
+    sc = _floor_and_blocker(torch.tensor(shift, dtype=F64))
+    dn = torch.tensor(d, dtype=F64) / torch.tensor(d, dtype=F64).norm()
+    c = torch.tensor(cos_of if cos_of is not None else d, dtype=F64)
+    value = 0.6 * float(-(c / c.norm())[2]) / math.pi
+    b = sc.corners[1]
+    shadow = b - (b[:, 2:3] / dn[2]) * dn
+    img = _exact_image(sc.corners[:1], [value], TOP_VIEW)
+    return img - _exact_image(torch.stack([shadow, b]), [value, value], TOP_VIEW)
+
+
+def test_sun_shadow_and_silhouette_edges_match_exact_coverage():
+    """A blocker over a sunlit floor, direct light only: moving it moves its silhouette and its shadow in the
+    image (measured 9e-9 relative); turning the sun moves the shadow's edges (their term alone against the exact
+    shadow's differences, measured 1.3e-9)."""
+    shift = torch.tensor(0.1, dtype=F64, requires_grad=True)
+    d = torch.tensor([1.5, 0.2, -1.0], dtype=F64, requires_grad=True)
+    sc = _floor_and_blocker(shift)
+    op = gather_operator(sc, TOP_VIEW, d.detach(), cache=False)
+    gr = image_gradient(op, sc, d)
+    assert gr.shadow_pixel.numel() > 0
+    r = torch.tensor([[0.6], [0.5]], dtype=F64)
+    img = gathered_radiance(op, r, torch.zeros(2, 1, dtype=F64), torch.ones(1, dtype=F64), gradient=gr)[0]
+    w = _weights(24, 24)
+    (g_shift,) = torch.autograd.grad((img * w).sum(), shift, retain_graph=True)
+    h = 1e-6
+    fd = float(((_exact_sunlit_floor(0.1 + h, [1.5, 0.2, -1.0]) - _exact_sunlit_floor(0.1 - h, [1.5, 0.2, -1.0]))
+                * w).sum()) / (2 * h)
+    assert abs(fd) > 1e-3
+    assert abs(float(g_shift) - fd) <= 5e-8 * abs(fd), (float(g_shift), fd)
+    # the shadow edges' term alone, against the shadow moving with the cosine held
+    shadow_only = dataclasses.replace(gr, direct=None, edge_pixel=gr.edge_pixel[:0], edge_weight=gr.edge_weight[:0],
+                                      side_fragment=gr.side_fragment[:, :0], side_facet=gr.side_facet[:, :0])
+    img = gathered_radiance(op, r, torch.zeros(2, 1, dtype=F64), torch.ones(1, dtype=F64), gradient=shadow_only)[0]
+    (g_d,) = torch.autograd.grad((img * w).sum(), d)
+    d0 = [1.5, 0.2, -1.0]
+    for k in range(3):
+        plus = [x + h * (i == k) for i, x in enumerate(d0)]
+        minus = [x - h * (i == k) for i, x in enumerate(d0)]
+        want = float(((_exact_sunlit_floor(0.1, plus, d0) - _exact_sunlit_floor(0.1, minus, d0)) * w).sum()) / (2 * h)
+        assert abs(float(g_d[k]) - want) <= 1e-8 * float(g_d.abs().max()), (k, g_d.tolist(), want)
+
+
+def test_occluded_gather_warns_what_is_held():
+    sc = ti.scenes.w_shape(divisions=(2, 2, 2), dtype=F64)
+    corners = sc.corners.clone().requires_grad_(True)
+    moving = ti.Scene.from_parts(corners, sc.is_triangle, sc.material, sc.material_names)
+    view = View((0.05, 0.03, 0.15), (0.05, 0.03, 0.0), up=(0, 1, 0), height=8, width=8)
+    op = gather_operator(sc, view, "uniform", cache=False)
+    assert op.info["rays"] > 0
+    with pytest.warns(GradientWarning, match="per-pixel visibility"):
+        image_gradient(op, moving, "uniform")
+
+
+def test_bad_input():
+    sc = ti.scenes.v_groove(60.0, divisions=2, dtype=F64)
+    op = gather_operator(sc, GROOVE_VIEW, "uniform", cache=False)
+    with pytest.raises(ShapeError, match="operator's 8 facets"):
+        image_gradient(op, ti.scenes.v_groove(60.0, divisions=1, dtype=F64))
+    with pytest.raises(ValueError, match="spacing"):
+        image_gradient(op, sc, spacing=0.0)
+    with pytest.raises(ValueError, match="shading"):
+        image_gradient(op, sc, shading="phong")
+    flat = gather_operator(sc, GROOVE_VIEW, "uniform", shading="flat", cache=False)
+    with pytest.raises(ValueError, match="shading='flat'"):
+        image_gradient(flat, sc)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        image_gradient(flat, sc, shading="flat")  # no occlusion to hold: no warning
