@@ -21,9 +21,14 @@ image keeps its values bit for bit; only its graph changes.
   fragment of that pixel and facet, or the facet's flat radiance where the pixel has no such fragment, or 0 for
   the background and the back of a facet).
 
-Not included (held fixed): where the per-pixel visibility ``V(x, j)`` and a sun's shadow change inside the image
-(shadow boundaries on a surface are not mesh edges), targets seen from their back in the sky's open part,
-and edges that cross the camera's plane.
+- **A sun's shadow edges on the surfaces.** The parts of mesh edges that the sun projects onto the seen, lit
+  facets (:func:`~torch_interreflect.geometry.shadows.shadow_segments`) are projected into the image and sampled the
+  same way; a sample counts where both side rays land on the receiving facet and exactly one of their hit points
+  sees the sun. The jump across it is the sun's direct light ``r S cos / π``.
+
+Not included (held fixed; a :class:`~torch_interreflect.errors.GradientWarning` says so when it applies): where
+the per-pixel visibility ``V(x, j)`` of the interreflected light changes inside the image; targets seen from their
+back in the sky's open part; edges that cross the camera's plane.
 """
 
 from __future__ import annotations
