@@ -8,7 +8,7 @@ OUT    ?= out
 
 .PHONY: install demo train-cc test lint bench bench-install bench-speed bench-solver bench-formfactors \
 	bench-accuracy bench-hierarchical bench-hierarchical-quick bench-images bench-variants bench-generator bench-kernel \
-	clean
+	bench-geometry-grad clean
 
 $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
@@ -45,6 +45,10 @@ bench-hierarchical-quick: $(STAMP)
 
 bench-kernel: $(STAMP)
 	$(BIN)/python -m benchmarks.kernel --generate
+
+bench-geometry-grad: $(STAMP)
+	$(BIN)/python -m benchmarks.geometry_grad
+	$(BIN)/python -m benchmarks.image_grad
 
 bench-solver: $(STAMP)
 	$(BIN)/python -m benchmarks.solver

@@ -91,8 +91,16 @@ def _kernel_delta(op: Gather, scene: Scene, x_ray: Tensor) -> tuple[Tensor, Tens
     (rows, cols), vals = g.indices().to(scene.device), g.values().to(device=scene.device, dtype=scene.dtype)
     h = facet[rows]
     n, c = scene.normals[h], scene.centroids[h]
-    poly = clip_polygons(scene.corners[cols], c, n, plane_eps(scene))
-    f = point_polygon_factor(x[rows][:, None, :], n, poly)[:, 0]
+    eps = plane_eps(scene)
+    target = scene.corners[cols]
+    cut = (((target.detach() - c.detach()[:, None, :]) * n.detach()[:, None, :]).sum(-1) < -eps).any(1)
+    f = torch.zeros(rows.numel(), dtype=scene.dtype, device=scene.device)
+    whole, part = torch.nonzero(~cut).reshape(-1), torch.nonzero(cut).reshape(-1)
+    if whole.numel():  # targets wholly in front of the point's plane: their four corners
+        f = f.index_copy(0, whole, point_polygon_factor(x[rows[whole]][:, None, :], n[whole], target[whole])[:, 0])
+    if part.numel():  # targets the plane cuts: clipped first
+        poly = clip_polygons(target[part], c[part], n[part], eps)
+        f = f.index_copy(0, part, point_polygon_factor(x[rows[part]][:, None, :], n[part], poly)[:, 0])
     fd = f.detach()
     vis = torch.where(fd > 0, vals / torch.where(fd > 0, fd, torch.ones_like(fd)), torch.zeros_like(fd)).clamp(0, 1)
     delta_vals = vis * (f - fd)
