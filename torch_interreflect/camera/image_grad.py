@@ -8,9 +8,10 @@ image keeps its values bit for bit; only its graph changes.
 
 - **Interior.** The hit point of each sub-pixel ray moves with the plane of the facet it hits
   (``x = eye + t d``, ``t = (c − eye)·n / (d·n)``); each gather point's kernel ``F(x → j)`` (Lambert's contour
-  formula, ``j`` clipped to the tangent plane of ``x``) follows ``x``, the normal and ``j``'s corners, with the
-  ray-cast visible fraction ``V(x, j)`` held; the direct light follows the same quantities (a sun's per-ray cosine,
-  the sky's open part ``1 − Σ_j F V`` over the front-facing targets, an area light's ``π Σ F V``).
+  formula, ``j`` clipped to the tangent plane of ``x``) follows ``x``, the normal and ``j``'s corners, times the
+  ray-cast visible fraction ``V(x, j)`` (its own change: below); the direct light follows the same quantities (a
+  sun's per-ray cosine, the sky's open part ``1 − Σ_j F V`` over the front-facing targets, an area light's
+  ``π Σ F V``).
 - **Silhouettes and facet borders** (edge sampling, as in Li et al. 2018, *Differentiable Monte Carlo ray tracing
   through edge sampling*). An image is the box-filtered integral of the radiance over each pixel; where a facet's
   edge is visible the radiance jumps, and moving the edge in the image by ``v`` (pixels, along its normal ``n``)
@@ -20,15 +21,17 @@ image keeps its values bit for bit; only its graph changes.
   each sample tell whether the edge is seen there (one side hits one of its facets) and what lies on each side (the
   fragment of that pixel and facet, or the facet's flat radiance where the pixel has no such fragment, or 0 for
   the background and the back of a facet).
-
 - **A sun's shadow edges on the surfaces.** The parts of mesh edges that the sun projects onto the seen, lit
   facets (:func:`~torch_interreflect.geometry.shadows.shadow_segments`) are projected into the image and sampled the
   same way; a sample counts where both side rays land on the receiving facet and exactly one of their hit points
   sees the sun. The jump across it is the sun's direct light ``r S cos / π``.
+- **Per-pixel visibility.** For the pairs a third facet could block, the shadow edges on ``j`` seen from each gather
+  point and the interior correction (:mod:`~torch_interreflect.formfactors.visibility_grad`, the gather point as a
+  one-point rule that moves along its camera ray).
 
-Not included (held fixed; a :class:`~torch_interreflect.errors.GradientWarning` says so when it applies): where
-the per-pixel visibility ``V(x, j)`` of the interreflected light changes inside the image; targets seen from their
-back in the sky's open part; edges that cross the camera's plane.
+Not included (held fixed): the part of the sky hidden by the backs of facets (a
+:class:`~torch_interreflect.errors.GradientWarning` says so when there is some), and edges that cross the camera's
+plane.
 """
 
 from __future__ import annotations
@@ -43,8 +46,10 @@ from torch import Tensor
 
 from ..errors import GradientWarning, ShapeError
 from ..formfactors.contour import point_polygon_factor
-from ..geometry._polygon import clip_interval, clip_polygons, plane_eps
-from ..geometry.edges import mesh_edges
+from ..formfactors.visibility import blocker_candidates
+from ..formfactors.visibility_grad import boundary_values, interior_values, shadow_spans
+from ..geometry._polygon import bilinear, clip_interval, clip_polygons, plane_eps, quad_coordinates
+from ..geometry.edges import candidate_edges, mesh_edges
 from ..geometry.raycast import RayCaster
 from ..geometry.scene import Scene
 from ..geometry.shadows import shadow_segments
@@ -77,7 +82,8 @@ def _group_mean(values: Tensor, group: Tensor, size: int) -> Tensor:
     return out / count.reshape(-1, *([1] * (values.dim() - 1)))
 
 
-def _kernel_delta(op: Gather, scene: Scene, x_ray: Tensor) -> tuple[Tensor, Tensor | None, Tensor, Tensor, Tensor]:
+def _kernel_delta(op: Gather, scene: Scene, x_ray: Tensor,
+                  caster: RayCaster) -> tuple[Tensor, Tensor | None, Tensor, Tensor, Tensor]:
     """``(delta [Kp, F] sparse COO, weights | None, rows [P], cols [P], delta values [P])`` of the gather
     points."""
     if op.kernel is None:
@@ -103,10 +109,43 @@ def _kernel_delta(op: Gather, scene: Scene, x_ray: Tensor) -> tuple[Tensor, Tens
         f = f.index_copy(0, part, point_polygon_factor(x[rows[part]][:, None, :], n[part], poly)[:, 0])
     fd = f.detach()
     vis = torch.where(fd > 0, vals / torch.where(fd > 0, fd, torch.ones_like(fd)), torch.zeros_like(fd)).clamp(0, 1)
-    delta_vals = vis * (f - fd)
+    delta_vals = vis * (f - fd) + _visibility_delta(scene, x, rows, cols, facet, caster)
     delta = torch.sparse_coo_tensor(torch.stack([rows, cols]), delta_vals, tuple(g.shape), check_invariants=False)
     delta = delta.coalesce()
     return delta, weights, rows, cols, delta_vals
+
+
+def _visibility_delta(scene: Scene, x: Tensor, rows: Tensor, cols: Tensor, facet: Tensor,
+                      caster: RayCaster) -> Tensor:
+    """Zero-valued ``[P]`` whose gradient is what the ray-cast ``V(x, j)`` leaves out of ``F(x → j) V(x, j)`` for
+    the pairs a third facet could block: the interior correction and the moving shadow edges on ``j`` seen from
+    ``x`` (:func:`~torch_interreflect.formfactors.visibility_grad.interior_values`,
+    :func:`~torch_interreflect.formfactors.visibility_grad.boundary_values`, with the gather point as a one-point
+    domain rule that moves along its camera ray)."""
+    out = torch.zeros(rows.numel(), dtype=scene.dtype, device=scene.device)
+    if rows.numel() == 0:
+        return out
+    sc = scene.to(torch.float64).to("cpu")
+    cd = sc.corners.detach()
+    eps = plane_eps(sc)
+    F = sc.num_facets
+    h, j = facet.cpu()[rows.cpu()], cols.cpu()
+    keys, inv = torch.unique(h * F + j, return_inverse=True)
+    sel = torch.nonzero(blocker_candidates(sc.detach(), keys // F, keys % F, eps)[inv]).reshape(-1)
+    if sel.numel() == 0:
+        return out
+    dom, tgt = h[sel], j[sel]
+    xp = x.to(torch.float64).to("cpu")[rows.cpu()[sel]]  # [P', 3], differentiable
+    u, v = quad_coordinates(cd[dom], xp.detach())
+    rule = (u[:, None], v[:, None], torch.ones(1, dtype=torch.float64))
+    edges = candidate_edges(sc, eps)
+    spans = shadow_spans(sc, dom, tgt, rule, edges, eps)
+    if spans[0].numel() == 0:
+        return out
+    val = interior_values(sc, dom, tgt, caster, rule, 4, torch.unique(spans[0]), points=xp)
+    val = val + boundary_values(sc, dom, tgt, caster, rule, spans, edges, points=xp)
+    jac = bilinear(cd[dom], u[:, None], v[:, None])[1][:, 0]  # the rule's area element: per point, divide it out
+    return out.index_add(0, sel.to(scene.device), (val / jac).to(device=scene.device, dtype=scene.dtype))
 
 
 def _direct_delta(op: Gather, scene: Scene, light: Any, h_ray: Tensor, rows: Tensor | None,
@@ -354,12 +393,11 @@ def image_gradient(op: Gather, scene: Scene, light: Any = "uniform", *, spacing:
         raise ValueError(f"shading must be 'gather' or 'flat'; got {shading!r}")
     if shading == "gather" and op.gather is None:
         raise ValueError("this operator was built with shading='flat'; build it with shading='gather'")
-    held = []
-    if shading == "gather" and scene.corners.requires_grad and op.info.get("rays", 0):
-        held.append("the per-pixel visibility of the pairs a third facet could block")
-    if held:
-        warnings.warn(f"image_gradient: {'; '.join(held)} is held fixed (its changes inside the image carry no "
-                      "gradient)", GradientWarning, stacklevel=3)
+    if shading == "gather" and isinstance(light, str) and light == "sky" and scene.corners.requires_grad:
+        front = (op.gather @ torch.ones(op.num_facets, 1, dtype=op.gather.dtype, device=op.gather.device))[:, 0]
+        if bool(((1.0 - op.open_sky) - front > 1e-9).any()):
+            warnings.warn("image_gradient: the part of the sky hidden by the backs of facets is held fixed (its "
+                          "change carries no gradient)", GradientWarning, stacklevel=3)
     caster = RayCaster(scene.detach().to(torch.float64).to("cpu"))
     pixel, weight, side_fragment, side_facet = _edge_samples(op, scene, caster, float(spacing))
     delta = weights = direct = None
@@ -373,7 +411,7 @@ def image_gradient(op: Gather, scene: Scene, light: Any = "uniform", *, spacing:
         x_ray, h_ray = _hit_points(op, scene)
         rows = cols = dvals = None
         if scene.corners.requires_grad:
-            delta, weights, rows, cols, dvals = _kernel_delta(op, scene, x_ray)
+            delta, weights, rows, cols, dvals = _kernel_delta(op, scene, x_ray, caster)
         direct = _direct_delta(op, scene, light, h_ray, rows, cols, dvals, weights)
     return ImageGradient(delta, weights, direct, pixel.to(dev), weight, side_fragment.to(dev), side_facet.to(dev),
                          shadow[0].to(dev), shadow[1], shadow[2].to(dev))

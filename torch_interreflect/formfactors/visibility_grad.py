@@ -103,11 +103,13 @@ def visibility_gradient(sc: Scene, dom: Tensor, tgt: Tensor, caster: Any, eps: f
 
 
 def interior_values(sc: Scene, dom: Tensor, tgt: Tensor, caster: Any, rule: tuple[Tensor, Tensor, Tensor],
-                    cells: int, rows: Tensor, chunk: int = 1 << 18) -> Tensor:
+                    cells: int, rows: Tensor, chunk: int = 1 << 18, *, points: Tensor | None = None) -> Tensor:
     """Zero-valued ``[P]`` (m²) whose gradient is ``Σ_q w_q J_q Σ_c ∂(k_c A_c) (s_c − vis_q)``: the interior part of
     the occluded pairs' derivative that ``∂f · vis`` misses (module docstring). ``rule``: domain points
     ``(u, v, w)`` (:func:`domain_rule`); ``cells × cells`` midpoint cells on each target; ``rows``: the
-    ``pair · Q + point`` rows to evaluate (the others have no shadow edge on their target, so ``s_c = vis``)."""
+    ``pair · Q + point`` rows to evaluate (the others have no shadow edge on their target, so ``s_c = vis``).
+    ``points``: with a one-point rule, the domain point of each pair ``[P, 3]`` carrying its own gradient (e.g. a
+    pixel's hit point, which moves along its camera ray) in place of the point that follows its facet's corners."""
     corners = sc.corners
     cd = corners.detach()
     uq, vq, wq = rule
@@ -134,17 +136,18 @@ def interior_values(sc: Scene, dom: Tensor, tgt: Tensor, caster: Any, rule: tupl
         live = torch.nonzero((weight != 0).any(-1)).reshape(-1)
         if live.numel():
             # recomputed in the backward: the graph keeps the chunk's inputs, not its [R, C] temporaries
+            xg = None if points is None else points[p[live]]
             val = checkpoint(_interior_chunk, corners, normals_g, a[live], b[live], u[live], v[live], uc, vc,
-                             weight[live], use_reentrant=False)
+                             weight[live], xg, use_reentrant=False)
             out = out.index_add(0, p[live], val)
     return out
 
 
 def _interior_chunk(corners: Tensor, normals: Tensor, a: Tensor, b: Tensor, uq: Tensor, vq: Tensor, uc: Tensor,
-                    vc: Tensor, weight: Tensor) -> Tensor:
-    """``Σ_c k(x, y_c) J_c · weight`` per row (domain facet ``a``, point ``(uq, vq)`` ``[R, 1]``, target ``b``;
-    differentiable in ``corners`` and ``normals``)."""
-    xg, _ = bilinear(corners[a], uq, vq)  # [R, 1, 3]
+                    vc: Tensor, weight: Tensor, points: Tensor | None = None) -> Tensor:
+    """``Σ_c k(x, y_c) J_c · weight`` per row (domain facet ``a``, point ``(uq, vq)`` ``[R, 1]`` or ``points
+    [R, 3]``, target ``b``; differentiable in ``corners``, ``normals`` and ``points``)."""
+    xg = bilinear(corners[a], uq, vq)[0] if points is None else points[:, None, :]  # [R, 1, 3]
     yg, jyg = bilinear(corners[b], uc, vc)  # [R, C, 3]
     kag = _kernel(xg, normals[a][:, None], yg, normals[b][:, None]) * jyg
     return ((kag - kag.detach()) * weight).sum(-1)  # exactly zero in value
@@ -194,10 +197,11 @@ def shadow_spans(sc: Scene, dom: Tensor, tgt: Tensor, rule: tuple[Tensor, Tensor
 
 
 def boundary_values(sc: Scene, dom: Tensor, tgt: Tensor, caster: Any, rule: tuple[Tensor, Tensor, Tensor],
-                    spans: tuple[Tensor, ...], edges: tuple[Tensor, Tensor], *, edge_order: int = 4) -> Tensor:
+                    spans: tuple[Tensor, ...], edges: tuple[Tensor, Tensor], *, edge_order: int = 4,
+                    points: Tensor | None = None) -> Tensor:
     """Zero-valued ``A_dom F_dom,tgt`` corrections ``[P]`` (m²) whose gradient is the boundary term (module
     docstring), from the candidates ``spans`` of :func:`shadow_spans` (same ``rule`` and ``edges``), ``edge_order``
-    Gauss points per clipped edge."""
+    Gauss points per clipped edge. ``points``: as for :func:`interior_values`."""
     corners = sc.corners
     out = corners.new_zeros(dom.numel())
     cd = corners.detach()
@@ -244,8 +248,7 @@ def boundary_values(sc: Scene, dom: Tensor, tgt: Tensor, caster: Any, rule: tupl
     n_in = side[edge]
     p, q, e, par, y, a, b = (z[edge] for z in (p, q, e, par, y, a, b))
     # the differentiable positions: the shadow point, and the target's material point under it
-    xg, _ = bilinear(corners[a], uq[p, q][:, None], vq[p, q][:, None])
-    xg = xg[:, 0]
+    xg = bilinear(corners[a], uq[p, q][:, None], vq[p, q][:, None])[0][:, 0] if points is None else points[p]
     g0 = corners[facet[e], corner[e]]
     g1 = corners[facet[e], (corner[e] + 1) % 4]
     bg = g0 + par[:, None] * (g1 - g0)
