@@ -1,7 +1,7 @@
 """Shape from one path-traced image: recover a V-groove's opening angle and its reflectance from a 64 × 64 picture
 that Mitsuba 3 rendered, silhouettes and shadows included.
 
-The observation ships with the repository (``benchmarks/references/vgroove40_sun_image64.npz`` and its ``.json``):
+The observation ships with the repository (``examples/data/vgroove40_sun_image64.npz`` and its ``.json``):
 a grey V-groove (reflectance 0.8, opening 40°, 10 × 10 facets per plate) under a low sun that lets one plate shade
 the other, seen from above the groove's open side, rendered by Mitsuba 3's path tracer (``path``, unbounded depth,
 box pixel filter, 2 × 1,024 samples per pixel). Re-render it with ``--render`` (needs the bench extra).
@@ -38,7 +38,7 @@ from torch_interreflect.camera import View, gather_operator, gathered_radiance, 
 from torch_interreflect.camera.image_grad import image_gradient
 
 F64 = torch.float64
-REFERENCES = Path(__file__).resolve().parents[1] / "benchmarks" / "references"
+DATA = Path(__file__).resolve().parent / "data"
 NAME = "vgroove40_sun_image64"
 TRUTH = {"angle": 40.0, "reflectance": 0.8, "divisions": 10}
 SUN = [-0.3, 0.25, -0.55]  # the way the light travels: low over the open side, one plate shades the other
@@ -47,7 +47,7 @@ VIEW = dict(eye=(0.17, -0.035, 0.09), target=(0.025, 0.045, 0.015), fov_deg=37.0
 
 def render_observation(size: int, spp: int) -> None:
     """Render the observation with Mitsuba 3 (two renders of ``spp``) and write it with its sidecar."""
-    sys.path.insert(0, str(REFERENCES.parents[1]))  # the repository root: the benchmarks' Mitsuba helpers
+    sys.path.insert(0, str(DATA.parents[1]))  # the repository root: the benchmarks' Mitsuba helpers
     from benchmarks.images import MitsubaImage
 
     view = View(**VIEW, height=size, width=size)
@@ -55,13 +55,13 @@ def render_observation(size: int, spp: int) -> None:
     m = MitsubaImage(scene, SUN, view, np.full(scene.num_facets, TRUTH["reflectance"]))
     a, ta = m.render(spp, seed=1001)
     b, tb = m.render(spp, seed=2002)
-    np.savez_compressed(REFERENCES / f"{NAME}.npz", image=((a + b) / 2).astype(np.float32),
+    np.savez_compressed(DATA / f"{NAME}.npz", image=((a + b) / 2).astype(np.float32),
                         noise=(np.abs(a - b) / 2).astype(np.float32))
     meta = {"truth": TRUTH, "sun": {"direction": SUN, "irradiance": 1.0}, "view": {**VIEW, "height": size,
             "width": size}, "mitsuba": {"integrator": "path", "max_depth": -1, "spp": 2 * spp,
                                         "seconds": ta + tb, "variant": m.mi.variant()}}
-    (REFERENCES / f"{NAME}.json").write_text(json.dumps(meta, indent=1) + "\n")
-    print(f"wrote {REFERENCES / NAME}.npz ({ta + tb:.1f} s of Mitsuba)")
+    (DATA / f"{NAME}.json").write_text(json.dumps(meta, indent=1) + "\n")
+    print(f"wrote {DATA / NAME}.npz ({ta + tb:.1f} s of Mitsuba)")
 
 
 def model_image(x: torch.Tensor, view: View, bounces: int | None) -> torch.Tensor:
@@ -140,8 +140,8 @@ def main(argv: list[str] | None = None) -> dict[str, float]:
     args = p.parse_args(argv)
     if args.render:
         render_observation(64, args.spp)
-    meta = json.loads((REFERENCES / f"{NAME}.json").read_text())
-    observed = torch.from_numpy(np.load(REFERENCES / f"{NAME}.npz")["image"].astype(np.float64))
+    meta = json.loads((DATA / f"{NAME}.json").read_text())
+    observed = torch.from_numpy(np.load(DATA / f"{NAME}.npz")["image"].astype(np.float64))
     view = View(**{k: tuple(v) if isinstance(v, list) else v for k, v in meta["view"].items()})
     mask = (observed > 0).to(F64)  # the groove's outline in the picture
     fits = {"infinite": fit(lambda x: model_image(x, view, None), observed, args.steps),
