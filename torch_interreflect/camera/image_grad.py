@@ -43,6 +43,7 @@ from typing import Any
 import numpy as np
 import torch
 from torch import Tensor
+from torch.utils.checkpoint import checkpoint
 
 from ..errors import GradientWarning, ShapeError
 from ..formfactors.contour import point_polygon_factor
@@ -56,12 +57,14 @@ from ..geometry.shadows import shadow_segments
 from .gather import Gather
 from .image_terms import ImageGradient
 
-__all__ = ["EDGE_SPACING", "image_gradient"]
+__all__ = ["EDGE_SPACING", "PAIR_CHUNK", "image_gradient"]
 
 #: Default distance between edge samples along a projected edge, in pixels.
 EDGE_SPACING = 0.5
 #: Offset of the two side rays of an edge sample from the edge, in pixels.
 _SIDE = 1e-2
+#: (gather point, facet) pairs whose kernel is evaluated at once (checkpointed: memory ~ 16 bytes per pair kept).
+PAIR_CHUNK = 1 << 18
 
 
 def _hit_points(op: Gather, scene: Scene) -> tuple[Tensor, Tensor]:
@@ -95,24 +98,37 @@ def _kernel_delta(op: Gather, scene: Scene, x_ray: Tensor,
     group, facet = group.to(scene.device), facet.to(scene.device)
     x = _group_mean(x_ray, group, int(facet.numel()))
     (rows, cols), vals = g.indices().to(scene.device), g.values().to(device=scene.device, dtype=scene.dtype)
-    h = facet[rows]
-    n, c = scene.normals[h], scene.centroids[h]
     eps = plane_eps(scene)
-    target = scene.corners[cols]
-    cut = (((target.detach() - c.detach()[:, None, :]) * n.detach()[:, None, :]).sum(-1) < -eps).any(1)
-    f = torch.zeros(rows.numel(), dtype=scene.dtype, device=scene.device)
-    whole, part = torch.nonzero(~cut).reshape(-1), torch.nonzero(cut).reshape(-1)
-    if whole.numel():  # targets wholly in front of the point's plane: their four corners
-        f = f.index_copy(0, whole, point_polygon_factor(x[rows[whole]][:, None, :], n[whole], target[whole])[:, 0])
-    if part.numel():  # targets the plane cuts: clipped first
-        poly = clip_polygons(target[part], c[part], n[part], eps)
-        f = f.index_copy(0, part, point_polygon_factor(x[rows[part]][:, None, :], n[part], poly)[:, 0])
+    parts = []
+    for s in range(0, rows.numel(), PAIR_CHUNK):
+        # recomputed in the backward: the graph keeps the chunk's indices, not its per-pair temporaries
+        parts.append(checkpoint(_pair_factors, x, scene.normals, scene.centroids, scene.corners, facet,
+                                rows[s : s + PAIR_CHUNK], cols[s : s + PAIR_CHUNK], eps, use_reentrant=False))
+    f = torch.cat(parts) if parts else torch.zeros(0, dtype=scene.dtype, device=scene.device)
     fd = f.detach()
     vis = torch.where(fd > 0, vals / torch.where(fd > 0, fd, torch.ones_like(fd)), torch.zeros_like(fd)).clamp(0, 1)
     delta_vals = vis * (f - fd) + _visibility_delta(scene, x, rows, cols, facet, caster)
     delta = torch.sparse_coo_tensor(torch.stack([rows, cols]), delta_vals, tuple(g.shape), check_invariants=False)
     delta = delta.coalesce()
     return delta, weights, rows, cols, delta_vals
+
+
+def _pair_factors(x: Tensor, normals: Tensor, centroids: Tensor, corners: Tensor, facet: Tensor, rows: Tensor,
+                  cols: Tensor, eps: float) -> Tensor:
+    """``F(x_row → col)`` ``[P]`` without occlusion (Lambert's contour formula; targets the point's plane cuts are
+    clipped first, the others evaluated on their four corners). Differentiable in every tensor argument."""
+    h = facet[rows]
+    n, c = normals[h], centroids[h]
+    target = corners[cols]
+    cut = (((target.detach() - c.detach()[:, None, :]) * n.detach()[:, None, :]).sum(-1) < -eps).any(1)
+    f = torch.zeros(rows.numel(), dtype=corners.dtype, device=corners.device)
+    whole, part = torch.nonzero(~cut).reshape(-1), torch.nonzero(cut).reshape(-1)
+    if whole.numel():  # targets wholly in front of the point's plane: their four corners
+        f = f.index_copy(0, whole, point_polygon_factor(x[rows[whole]][:, None, :], n[whole], target[whole])[:, 0])
+    if part.numel():  # targets the plane cuts: clipped first
+        poly = clip_polygons(target[part], c[part], n[part], eps)
+        f = f.index_copy(0, part, point_polygon_factor(x[rows[part]][:, None, :], n[part], poly)[:, 0])
+    return f
 
 
 def _visibility_delta(scene: Scene, x: Tensor, rows: Tensor, cols: Tensor, facet: Tensor,
