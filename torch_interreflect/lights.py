@@ -57,8 +57,7 @@ __all__ = ["back_coverage", "directional", "light_geometry", "lit_fraction", "sk
 
 def _detached_cpu(scene: Scene) -> Scene:
     """The scene in float64 on the CPU without autograd history (for ray casting: constants of the geometry)."""
-    sc = scene.to(torch.float64).to("cpu")
-    return Scene.from_parts(sc.corners.detach(), sc.is_triangle, sc.material, sc.material_names)
+    return scene.detach().to(torch.float64).to("cpu")
 
 
 def _check_spd(spd: Tensor, name: str) -> Tensor:
