@@ -46,10 +46,10 @@ from torch import Tensor
 from torch.utils.checkpoint import checkpoint
 
 from ..errors import GradientWarning, ShapeError
-from ..formfactors.contour import point_polygon_factor
+from ..formfactors.fused import point_polygon_factors
 from ..formfactors.visibility import blocker_candidates
 from ..formfactors.visibility_grad import boundary_values, interior_values, shadow_spans
-from ..geometry._polygon import bilinear, clip_interval, clip_polygons, plane_eps, quad_coordinates
+from ..geometry._polygon import bilinear, clip_interval, clip_polygons, facing_others, plane_eps, quad_coordinates
 from ..geometry.edges import candidate_edges, mesh_edges
 from ..geometry.raycast import RayCaster
 from ..geometry.scene import Scene
@@ -91,13 +91,19 @@ def _kernel_delta(op: Gather, scene: Scene, x_ray: Tensor,
     points."""
     if op.kernel is None:
         group, facet, weights = op.ray_fragment.cpu(), op.fragment_facet.cpu(), None
-        g = op.gather.cpu().to_sparse_coo().coalesce()
+        g = op.gather.cpu()  # CSR: rows in order, columns ascending within a row
+        counts = g.crow_indices().diff()
+        rows = torch.repeat_interleave(torch.arange(counts.numel()), counts)
+        cols, vals = g.col_indices(), g.values()
     else:
         group, facet, weights, g = op.kernel
         g = g.coalesce()
+        (rows, cols), vals = g.indices(), g.values()
+    shape = tuple(g.shape)
     group, facet = group.to(scene.device), facet.to(scene.device)
     x = _group_mean(x_ray, group, int(facet.numel()))
-    (rows, cols), vals = g.indices().to(scene.device), g.values().to(device=scene.device, dtype=scene.dtype)
+    rows, cols = rows.to(scene.device), cols.to(scene.device)
+    vals = vals.to(device=scene.device, dtype=scene.dtype)
     eps = plane_eps(scene)
     parts = []
     for s in range(0, rows.numel(), PAIR_CHUNK):
@@ -108,8 +114,9 @@ def _kernel_delta(op: Gather, scene: Scene, x_ray: Tensor,
     fd = f.detach()
     vis = torch.where(fd > 0, vals / torch.where(fd > 0, fd, torch.ones_like(fd)), torch.zeros_like(fd)).clamp(0, 1)
     delta_vals = vis * (f - fd) + _visibility_delta(scene, x, rows, cols, facet, caster)
-    delta = torch.sparse_coo_tensor(torch.stack([rows, cols]), delta_vals, tuple(g.shape), check_invariants=False)
-    delta = delta.coalesce()
+    # (row, column) pairs are sorted and unique: already coalesced
+    delta = torch.sparse_coo_tensor(torch.stack([rows, cols]), delta_vals, shape, check_invariants=False,
+                                    is_coalesced=True)
     return delta, weights, rows, cols, delta_vals
 
 
@@ -124,10 +131,10 @@ def _pair_factors(x: Tensor, normals: Tensor, centroids: Tensor, corners: Tensor
     f = torch.zeros(rows.numel(), dtype=corners.dtype, device=corners.device)
     whole, part = torch.nonzero(~cut).reshape(-1), torch.nonzero(cut).reshape(-1)
     if whole.numel():  # targets wholly in front of the point's plane: their four corners
-        f = f.index_copy(0, whole, point_polygon_factor(x[rows[whole]][:, None, :], n[whole], target[whole])[:, 0])
+        f = f.index_copy(0, whole, point_polygon_factors(x[rows[whole]], n[whole], target[whole]))
     if part.numel():  # targets the plane cuts: clipped first
         poly = clip_polygons(target[part], c[part], n[part], eps)
-        f = f.index_copy(0, part, point_polygon_factor(x[rows[part]][:, None, :], n[part], poly)[:, 0])
+        f = f.index_copy(0, part, point_polygon_factors(x[rows[part]], n[part], poly))
     return f
 
 
@@ -146,8 +153,10 @@ def _visibility_delta(scene: Scene, x: Tensor, rows: Tensor, cols: Tensor, facet
     eps = plane_eps(sc)
     F = sc.num_facets
     h, j = facet.cpu()[rows.cpu()], cols.cpu()
-    keys, inv = torch.unique(h * F + j, return_inverse=True)
-    sel = torch.nonzero(blocker_candidates(sc.detach(), keys // F, keys % F, eps)[inv]).reshape(-1)
+    fi, fj = torch.nonzero(facing_others(sc.detach()), as_tuple=True)  # every facet pair that can exchange light
+    table = torch.zeros(F * F, dtype=torch.bool)
+    table[fi * F + fj] = blocker_candidates(sc.detach(), fi, fj, eps)
+    sel = torch.nonzero(table[h * F + j]).reshape(-1)
     if sel.numel() == 0:
         return out
     dom, tgt = h[sel], j[sel]

@@ -318,6 +318,41 @@ def polygon_sums_grad(domain, normal, target, count, u, v, w, vis, vrow, gout, g
 
 
 @njit(cache=True, parallel=True)
+def point_polygon_sums(x, normal, poly, count, out):
+    """``out[p] = F(x_p → poly[p, :count[p]])`` (Lambert's contour formula; ``x``, ``normal``: ``[P, 3]``)."""
+    for p in prange(x.shape[0]):
+        out[p] = _contour(x[p, 0], x[p, 1], x[p, 2], normal[p, 0], normal[p, 1], normal[p, 2], poly[p], count[p])
+
+
+@njit(cache=True, parallel=True)
+def point_polygon_grad(x, normal, poly, count, gout, gx, gn, gpoly):
+    """Adjoint of :func:`point_polygon_sums`: ``gout [P]`` → ∂loss/∂x ``[P, 3]``, ∂loss/∂normal ``[P, 3]``,
+    ∂loss/∂poly ``[P, K, 3]`` (written, not accumulated)."""
+    for p in prange(x.shape[0]):
+        e = np.empty(9)
+        x0 = x[p, 0]
+        x1 = x[p, 1]
+        x2 = x[p, 2]
+        coef = -_INV_2PI * gout[p]
+        for i in range(3):
+            gx[p, i] = 0.0
+            gn[p, i] = 0.0
+        for k in range(poly.shape[1]):
+            for i in range(3):
+                gpoly[p, k, i] = 0.0
+        cnt = count[p]
+        for k in range(cnt):
+            k1 = k + 1 if k + 1 < cnt else 0
+            _edge_grad(poly[p, k, 0] - x0, poly[p, k, 1] - x1, poly[p, k, 2] - x2, poly[p, k1, 0] - x0,
+                       poly[p, k1, 1] - x1, poly[p, k1, 2] - x2, normal[p, 0], normal[p, 1], normal[p, 2], coef, e)
+            for i in range(3):
+                gpoly[p, k, i] += e[i]
+                gpoly[p, k1, i] += e[3 + i]
+                gx[p, i] -= e[i] + e[3 + i]
+                gn[p, i] += e[6 + i]
+
+
+@njit(cache=True, parallel=True)
 def quad_points(quads, u, v, out):
     """``out[p, q]`` = the point ``x(u_q, v_q)`` of the bilinear map of ``quads[p] [4, 3]`` (as
     :func:`..geometry._polygon.bilinear`, without the Jacobian)."""

@@ -30,7 +30,8 @@ from ..geometry._polygon import bilinear, clip_polygons
 from .compiled import launch, loops
 from .contour import point_polygon_factor
 
-__all__ = ["Backend", "fan_sums", "fused_available", "group_sums", "point_sums", "resolve_backend"]
+__all__ = ["Backend", "fan_sums", "fused_available", "group_sums", "point_polygon_factors", "point_sums",
+           "resolve_backend"]
 
 Backend = Literal["auto", "fused", "torch"]
 #: Visible fractions ``[R, Q]`` at points ``x [R, Q, 3]`` of pairs ``(dom [R], tgt [R])``.
@@ -387,3 +388,52 @@ def point_sums(
         launch(loops().point_factors, *d, _np(rows.long()), _np(polygon.double()), _np(which.long()),
              _np(centre.double()), _np(axis.double()), out.numpy(), ahead.numpy())
     return out.to(x.dtype), ahead
+
+
+class _PointPolygon(torch.autograd.Function):
+    """The compiled contour formula from points to polygons, one pair per row, with its compiled adjoint
+    (gradients to the points, normals and polygon corners). First derivatives only."""
+
+    @staticmethod
+    def forward(ctx, x, normal, poly, count):  # type: ignore[override]
+        out = torch.empty(x.shape[0], dtype=torch.float64)
+        if x.shape[0]:
+            launch(loops().point_polygon_sums, _np(x.double()), _np(normal.double()), _np(poly.double()),
+                   _np(count.long()), out.numpy())
+        ctx.save_for_backward(x, normal, poly, count)
+        return out.to(x.dtype)
+
+    @staticmethod
+    def backward(ctx, gout):  # type: ignore[override]
+        _first_order_only()
+        x, normal, poly, count = ctx.saved_tensors
+        gx = torch.empty(x.shape, dtype=torch.float64)
+        gn = torch.empty(normal.shape, dtype=torch.float64)
+        gp = torch.empty(poly.shape, dtype=torch.float64)
+        if x.shape[0]:
+            launch(loops().point_polygon_grad, _np(x.double()), _np(normal.double()), _np(poly.double()),
+                   _np(count.long()), _np(gout.double()), gx.numpy(), gn.numpy(), gp.numpy())
+        return gx.to(x.dtype), gn.to(normal.dtype), gp.to(poly.dtype), None
+
+
+def point_polygon_factors(x: Tensor, normal: Tensor, polygon: Tensor, backend: Backend = "auto") -> Tensor:
+    """``F(x_p → polygon_p)`` per row: :func:`~torch_interreflect.formfactors.contour.point_polygon_factor` with one
+    point per polygon, through the compiled loop and its compiled adjoint on the CPU (first derivatives; memory
+    O(rows) under autograd), torch elsewhere or with ``backend="torch"``.
+
+    Args:
+        x: Points in metres. Shape ``[P, 3]``.
+        normal: Unit normal at each point. Shape ``[P, 3]``.
+        polygon: Polygons on or above the points' tangent planes, padded by repeating a corner. Shape ``[P, K, 3]``.
+        backend: ``"auto"`` / ``"fused"`` (compiled where it applies) or ``"torch"``.
+
+    Returns:
+        Form factors (dimensionless), the dtype of ``x``. Shape ``[P]``.
+    """
+    if backend not in ("auto", "fused", "torch"):
+        raise ValueError(f"backend must be 'auto', 'fused' or 'torch'; got {backend!r}")
+    compiled = backend != "torch" and loops() is not None and all(t.device.type == "cpu" for t in (x, normal, polygon))
+    if not compiled:
+        return point_polygon_factor(x[:, None, :], normal, polygon)[:, 0]
+    count = torch.full((x.shape[0],), polygon.shape[1], dtype=torch.int64)
+    return _PointPolygon.apply(x, normal, polygon, count)
