@@ -252,6 +252,49 @@ def test_occluded_gather_follows_the_moving_ridge(light):
     assert abs(float(g) - slope) <= 6e-3 * abs(slope), (float(g), slope)
 
 
+def test_floor_reaching_behind_the_camera():
+    """A floor seen from just above it, reaching behind the camera: its sides enter the image from below, and their
+    part in front of the camera carries the width's derivative (against the exact coverage of the floor clipped to
+    the camera's front, measured 1.4e-10 relative)."""
+    view = View((0.0, -1.0, 0.3), (0.0, 2.0, 0.0), up=(0, 0, 1), fov_deg=60, height=16, width=16)
+    w = _weights(16, 16)
+    eye = torch.tensor(view.eye, dtype=F64)
+    forward = torch.tensor(view.target, dtype=F64) - eye
+    forward = forward / forward.norm()
+
+    def floor(half: torch.Tensor) -> ti.Scene:
+        z, y0, y1 = torch.zeros((), dtype=F64), torch.tensor(-3.0, dtype=F64), torch.tensor(3.0, dtype=F64)
+        return ti.Scene.from_polygons(torch.stack([torch.stack([-half, y0, z]), torch.stack([half, y0, z]),
+                                                   torch.stack([half, y1, z]), torch.stack([-half, y1, z])])[None])
+
+    half = torch.tensor(0.8, dtype=F64, requires_grad=True)
+    sc = floor(half)
+    depth = (sc.corners[0].detach() - eye) @ forward
+    assert bool((depth < 0).any()) and bool((depth > 0).any())  # it does reach behind the camera
+    op = gather_operator(sc, view, "uniform", shading="flat", cache=False)
+    img = gathered_radiance(op, torch.ones(1, 1, dtype=F64), torch.ones(1, 1, dtype=F64), shading="flat",
+                            gradient=image_gradient(op, sc, shading="flat"))[0]
+    (g,) = torch.autograd.grad((img * w).sum(), half)
+
+    def exact(x: float) -> float:
+        quad = floor(torch.tensor(x, dtype=F64)).corners[0]
+        d = (quad - eye) @ forward - 0.05  # in front of the camera, below the image
+        kept = []  # the quad clipped to depth >= 0.05 (Sutherland–Hodgman, one plane)
+        for k in range(4):
+            p, q, dp, dq = quad[k - 1], quad[k], d[k - 1], d[k]
+            if (dp >= 0) != (dq >= 0):
+                kept.append(p + (q - p) * (dp / (dp - dq)))
+            if dq >= 0:
+                kept.append(q)
+        uv = view.pinhole().project(torch.stack(kept))
+        return float((polygon_pixel_areas(uv, 16, 16) / math.pi * w).sum())
+
+    h = 1e-6
+    fd = (exact(0.8 + h) - exact(0.8 - h)) / (2 * h)
+    assert abs(fd) > 1.0
+    assert abs(float(g) - fd) <= 1e-9 * abs(fd), (float(g), fd)
+
+
 def test_sky_hidden_by_backs_of_facets_warns():
     """A plate facing up above a floor: the floor's sky is hidden by the plate's back, whose change is held."""
     floor = torch.tensor([[-1.0, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0]], dtype=F64)

@@ -29,13 +29,14 @@ image keeps its values bit for bit; only its graph changes.
   point and the interior correction (:mod:`~torch_interreflect.formfactors.visibility_grad`, the gather point as a
   one-point rule that moves along its camera ray).
 
-Not included (held fixed): the part of the sky hidden by the backs of facets (a
-:class:`~torch_interreflect.errors.GradientWarning` says so when there is some), and edges that cross the camera's
-plane.
+Edges that reach behind the camera are clipped to the part in front of it first. Not included (held fixed): the part
+of the sky hidden by the backs of facets (a :class:`~torch_interreflect.errors.GradientWarning` says so when there
+is some).
 """
 
 from __future__ import annotations
 
+import math
 import warnings
 from dataclasses import dataclass
 from typing import Any
@@ -297,16 +298,23 @@ class _Samples:
 
 
 def _screen_samples(op: Gather, a: Tensor, b: Tensor, spacing: float) -> _Samples:
-    """Project segments ``a → b`` (``[N, 3]``, differentiable), clip them to the image, split them at pixel borders
-    and sample every piece at ``ceil(length / spacing)`` midpoints. Segments that reach behind the camera are left
-    out."""
-    ua, za = _project(op.view, a)
-    ub, zb = _project(op.view, b)
+    """Clip segments ``a → b`` (``[N, 3]``, differentiable) to the part in front of the camera (depth above 10⁻³ of
+    the view's eye–target distance), project them, clip them to the image, split them at pixel borders and sample
+    every piece at ``ceil(length / spacing)`` midpoints."""
+    near = 1e-3 * math.dist(op.view.eye, op.view.target)
+    za, zb = _project(op.view, a)[1], _project(op.view, b)[1]
+    front = ((za >= near) | (zb >= near)).detach().cpu()
+    # an end behind the near plane moves to where the segment crosses it (on the same line: same image line)
+    cut_a, cut_b = (za < near) & (zb >= near), (zb < near) & (za >= near)
+    ta = torch.where(cut_a, (near - za) / torch.where(cut_a, zb - za, torch.ones_like(za)), torch.zeros_like(za))
+    tb = torch.where(cut_b, (near - zb) / torch.where(cut_b, za - zb, torch.ones_like(zb)), torch.zeros_like(zb))
+    a, b = a + ta[:, None] * (b - a), b + tb[:, None] * (a - b)
+    ua, ub = _project(op.view, a)[0], _project(op.view, b)[0]
     H, W = op.height, op.width
     uad, ubd = ua.detach().double().cpu(), ub.detach().double().cpu()
     s0, s1 = _screen_clip(uad, ubd, H, W)
     length = (ubd - uad).norm(dim=-1)
-    ok = (za.detach().cpu() > 0) & (zb.detach().cpu() > 0) & (s1 > s0) & (length > 0)
+    ok = front & (s1 > s0) & (length > 0) & torch.isfinite(length)
     piece_edge, pa, pb = _pixel_pieces(uad, ubd, s0, s1, ok)
     n = torch.ceil(length[piece_edge] * (pb - pa) / spacing).clamp_min(1).long()
     piece = torch.repeat_interleave(torch.arange(n.numel()), n)
