@@ -64,5 +64,5 @@ class GeometryWarning(UserWarning):
 
 
 class GradientWarning(UserWarning):
-    """Autograd will return a gradient that leaves out a known term (e.g. an image's per-pixel visibility held fixed
-    while the geometry requires grad); the message names the term."""
+    """Autograd will return a gradient that leaves out a known term (e.g. the part of an image's sky hidden by the
+    backs of facets, held fixed while the geometry requires grad); the message names the term."""

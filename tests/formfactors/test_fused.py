@@ -206,7 +206,7 @@ def test_point_polygon_factors_and_their_adjoint_match_autograd(dtype):
     poly = quad + 0.1 * torch.rand(P, 4, 3, dtype=torch.float64, generator=g)
     poly[::5, 3] = poly[::5, 2]  # triangles: a repeated corner
     inputs = [t.to(dtype).requires_grad_(True) for t in (x, n, poly)]
-    w = torch.rand(P, dtype=dtype, generator=None)
+    w = torch.rand(P, dtype=torch.float64, generator=g).to(dtype)
     a = fused.point_polygon_factors(*inputs)
     b = fused.point_polygon_factors(*inputs, backend="torch")
     assert a.dtype == dtype and a.shape == (P,)

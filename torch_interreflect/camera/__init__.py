@@ -5,11 +5,12 @@
 - :mod:`.projection`: :func:`look_at`, :func:`project` → :class:`Projection` (pixel × facet coverage),
   :func:`render_image`.
 - :mod:`.view`: :class:`View` (eye, target, up, field of view, size), a hashable view.
-- :mod:`.gather`: :func:`gather_operator` → :class:`Gather`, :func:`gathered_image`, :func:`gathered_radiance`,
-   (per-pixel final gather, or flat shading); :mod:`.fragments` (a view's sub-pixel rays grouped per pixel and
+- :mod:`.gather`: :func:`gather_operator` → :class:`Gather`, :func:`gathered_image`, :func:`gathered_radiance`
+  (per-pixel final gather, or flat shading); :mod:`.fragments` (a view's sub-pixel rays grouped per pixel and
   facet) and :mod:`.point_kernel` (:func:`point_form_factors`, point-to-facet form factors with occlusion) under it.
 - :mod:`.image_grad`: :func:`~.image_grad.image_gradient`, the terms (:mod:`.image_terms`) that carry a gathered
-  image's gradient to the corners and a sun's direction (hit points, kernel, edges of silhouettes and shadows).
+  image's gradient to the corners and a sun's direction (hit points, kernel, visibility; the edges of silhouettes
+  and shadows sampled by :mod:`.edge_samples`).
 - :mod:`.rendering`: :func:`render_view`, solved facets → image in one call (with the image's gradient).
 - :mod:`.io`: :func:`save_image` (8-bit sRGB preview or 16-bit linear PNG).
 - :mod:`.image`: :func:`to_srgb`, :func:`blur`, :func:`white_balance`, :func:`add_noise`, :func:`to_lab`,

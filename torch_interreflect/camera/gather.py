@@ -317,9 +317,10 @@ def gathered_radiance(op: Gather, reflectance: Tensor, irradiance: Tensor, spd: 
         shading: ``"gather"`` or ``"flat"``.
         direct: ``g0`` per fragment in place of ``op.direct``, e.g. a mix of lights
             ``a · op.open_sky · π + (1 − a) · op.direct``. Shape ``[K]``.
-        gradient: The :class:`~torch_interreflect.camera.image_grad.ImageGradient` of the operator and a scene
-            whose corners (or a sun direction) require grad: the image then passes gradients to them (values
-            unchanged). With ``direct=`` its direct-light term is left out.
+        gradient: The :class:`~torch_interreflect.camera.image_terms.ImageGradient`
+            (:func:`~torch_interreflect.camera.image_grad.image_gradient`) of the operator and a scene whose corners
+            (or a sun direction) require grad: the image then passes gradients to them (values unchanged). With
+            ``direct=`` its direct-light terms (the per-ray cosines and the sun's shadow edges) are left out.
 
     Returns:
         Radiance images. Shape ``[..., L, H, W]``.
@@ -342,7 +343,8 @@ def gathered_radiance(op: Gather, reflectance: Tensor, irradiance: Tensor, spd: 
         raise ShapeError(f"spd must be [..., L] with L = {E.shape[-1]}; got {list(S.shape)}")
     if direct is not None and direct.shape != (op.num_fragments,):
         raise ShapeError(f"direct must be [K] with K = {op.num_fragments} (one per fragment); got {list(direct.shape)}")
-    if direct is None:
+    own_direct = direct is None  # the operator's light: the gradient's direct-light terms apply to it
+    if own_direct:
         direct = op.direct.to(device=E.device, dtype=E.dtype)
         if gradient is not None and gradient.direct is not None:
             direct = direct + gradient.direct.to(direct)
@@ -357,7 +359,7 @@ def gathered_radiance(op: Gather, reflectance: Tensor, irradiance: Tensor, spd: 
     pixels = _columns(op.pixel_fragments, values)
     if gradient is not None:
         pixels = pixels + edge_pixels(gradient, values, r * E / math.pi, op.height * op.width)
-        if gradient.shadow_pixel.numel():
+        if gradient.shadow_pixel.numel() and own_direct:
             pixels = pixels + shadow_pixels(gradient, r, S, op.height * op.width)
     return _to_image(op, pixels)
 

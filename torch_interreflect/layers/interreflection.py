@@ -10,6 +10,7 @@ How a light and a spectrum become ``E0``: :func:`torch_interreflect.lights.light
 
 from __future__ import annotations
 
+import dataclasses
 import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -23,7 +24,8 @@ from .. import spectral
 from ..accuracy.plan import plan
 from ..camera.facet_rgb import facet_rgb
 from ..camera.gather import Gather, gather_operator, gathered_image, source_irradiance
-from ..camera.image_grad import ImageGradient, image_gradient
+from ..camera.image_grad import image_gradient
+from ..camera.image_terms import ImageGradient
 from ..camera.sensor import Camera
 from ..camera.view import View
 from ..errors import ShapeError
@@ -307,6 +309,11 @@ class Interreflection(nn.Module):
 
     def _apply(self, fn: Any, recurse: bool = True) -> Interreflection:  # drop the cached FormFactors view
         self._ff_cache = None
+        g = self.image_gradient
+        if g is not None:  # a plain attribute (it carries a graph): moved with the buffers, its graph kept
+            moved = {f.name: fn(getattr(g, f.name)) for f in dataclasses.fields(g)
+                     if isinstance(getattr(g, f.name), Tensor)}
+            self.image_gradient = dataclasses.replace(g, **moved)
         return super()._apply(fn, recurse)
 
 
