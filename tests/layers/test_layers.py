@@ -326,3 +326,20 @@ def test_layer_view_passes_image_gradients_to_the_angle():
                + (torch.einsum("fc,fhw->chw", r0, (cp - cm) / (2 * h)) * w).sum())
     assert abs(fd) > 1e-3
     assert abs(float(g) - fd) <= 1e-9 * abs(fd), (float(g), fd)
+
+
+def test_layer_view_gradient_terms_follow_double():
+    """A float32 layer with a gathered view of a groove whose angle requires grad, moved to float64: the image's
+    gradient terms move with it and the backward runs; it agrees with a layer built in float64 (measured 2.4e-8)."""
+    from torch_interreflect.camera import View
+
+    view = View((0.08, 0.045, 0.05), (0.02, 0.045, 0.01), up=(0, 1, 0), fov_deg=60, height=8, width=8)
+    grads = []
+    for build in (torch.float32, torch.float64):
+        wl = ti.spectral.wavelengths(dtype=build)
+        angle = torch.tensor(60.0, dtype=build, requires_grad=True)
+        layer = Interreflection(ti.scenes.v_groove(angle, divisions=2), wl, view=view).double()
+        assert layer.image_gradient.edge_weight.dtype == torch.float64
+        _, image = layer(torch.full((8, 31), 0.5, dtype=torch.float64), ti.spectral.illuminant("D65", wl.double()))
+        grads.append(float(torch.autograd.grad(image.sum(), angle)[0]))
+    assert abs(grads[0] - grads[1]) <= 2e-7 * abs(grads[1]), grads

@@ -18,7 +18,7 @@ import torch
 from torch import Tensor
 
 from ..geometry._polygon import clip_interval, plane_eps
-from ..geometry.edges import mesh_edges
+from ..geometry.edges import edge_pieces
 from ..geometry.raycast import RayCaster
 from ..geometry.scene import Scene
 from ..geometry.shadows import shadow_segments
@@ -168,8 +168,9 @@ def _screen_samples(op: Gather, a: Tensor, b: Tensor, spacing: float) -> _Sample
 
 
 def edge_samples(op: Gather, scene: Scene, caster: RayCaster, spacing: float) -> tuple[Tensor, ...]:
-    """Samples of the mesh edges seen in the image (every edge of :func:`~torch_interreflect.geometry.edges.mesh_edges`
-    where a side ray hits one of its facets; one of two overlapping one-facet edges at a T-junction).
+    """Samples of the mesh edges seen in the image: the pieces of
+    :func:`~torch_interreflect.geometry.edges.edge_pieces` (edges cut where another facet's corner lies on them, so
+    a T-junction's border is listed once), where a side ray hits one of the piece's facets.
 
     Args:
         op: The view's :class:`~torch_interreflect.camera.Gather`. scene: Its scene (corners may require grad).
@@ -183,16 +184,15 @@ def edge_samples(op: Gather, scene: Scene, caster: RayCaster, spacing: float) ->
         background or a back).
     """
     sc = scene.detach().to(torch.float64).to("cpu")
-    e = mesh_edges(sc, plane_eps(scene))
-    dev = scene.device
-    a = scene.corners[e.facet.to(dev), e.corner.to(dev)]
-    b = scene.corners[e.facet.to(dev), ((e.corner + 1) % 4).to(dev)]
-    smp = _screen_samples(op, a, b, spacing)
+    e = edge_pieces(sc, plane_eps(scene))
+    dev, dt = scene.device, scene.dtype
+    c0 = scene.corners[e.facet.to(dev), e.corner.to(dev)]
+    c1 = scene.corners[e.facet.to(dev), ((e.corner + 1) % 4).to(dev)]
+    t0, t1 = e.t0.to(device=dev, dtype=dt)[:, None], e.t1.to(device=dev, dtype=dt)[:, None]
+    smp = _screen_samples(op, c0 + t0 * (c1 - c0), c0 + t1 * (c1 - c0), spacing)
     sides = [_side_hits(op, caster, smp.q + sign * _SIDE * smp.normal, sc) for sign in (-1.0, 1.0)]
-    partner = e.partner[smp.segment]
-    own = torch.stack([e.facet[smp.segment], torch.where(partner >= 0, partner, torch.full_like(partner, -2))], 0)
-    seen = ((sides[0][0][None] == own) | (sides[1][0][None] == own)).any(0)
-    seen &= ~_t_junction_duplicate(op, sc, e.facet[smp.segment], partner, sides)
+    own = e.facets[smp.segment]  # [S, M]: every facet that has the piece
+    seen = ((sides[0][0][:, None] == own) | (sides[1][0][:, None] == own)).any(1)
     keep = torch.nonzero(seen).reshape(-1)
     smp = smp.select(keep)
     # the value on a side: a facet's front, or 0 (the background, a facet's back)
@@ -203,34 +203,6 @@ def edge_samples(op: Gather, scene: Scene, caster: RayCaster, spacing: float) ->
         deeper = _fragment_at(op, _pixel_of(smp.q + sign * 0.5 * smp.normal, op.height, op.width), facet)
         side_fragment.append(torch.where(frag >= 0, frag, deeper))
     return smp.pixel, smp.weight, torch.stack(side_fragment), side_facet
-
-
-def _t_junction_duplicate(op: Gather, sc: Scene, facet: Tensor, partner: Tensor, sides: list) -> Tensor:
-    """Samples ``[S]`` of one-facet edges that another facet's one-facet edge covers at the same place (a
-    T-junction: a facet beside two smaller ones, as refinement and contact splits leave): both edges bound the same
-    jump, so only the one of the higher-numbered facet is kept. Detected from the side rays: the other side's facet
-    is the one whose hit point lies next to this side's and on that facet's own border."""
-    (ha, _, xa), (hb, _, xb) = sides
-    mine_a = ha == facet
-    other = torch.where(mine_a, hb, ha)
-    x_other = torch.where(mine_a[:, None], xb, xa)
-    x_mine = torch.where(mine_a[:, None], xa, xb)
-    eye = torch.tensor(op.view.eye, dtype=torch.float64)
-    # the side rays are 2 × 0.01 px apart: a few times that in metres at the point's distance is "next to"
-    tol = 10 * _SIDE * (x_mine - eye).norm(dim=-1) / op.view.focal + plane_eps(sc)
-    cand = (partner < 0) & (other >= 0) & (other > facet) & ((x_other - x_mine).norm(dim=-1) <= tol)
-    if not bool(cand.any()):
-        return cand
-    idx = torch.nonzero(cand).reshape(-1)
-    quad = sc.corners[other[idx]]  # [n, 4, 3]: the distance from the hit point to the other facet's border
-    p = x_other[idx][:, None, :]
-    a, b = quad, torch.roll(quad, -1, dims=1)
-    ab = b - a
-    t = (((p - a) * ab).sum(-1) / (ab * ab).sum(-1).clamp_min(1e-300)).clamp(0.0, 1.0)
-    dist = (p - (a + t[..., None] * ab)).norm(dim=-1).amin(1)
-    out = torch.zeros_like(cand)
-    out[idx] = dist <= tol[idx]
-    return out
 
 
 def shadow_samples(op: Gather, scene: Scene, direction: Tensor, caster: RayCaster,

@@ -16,7 +16,7 @@ from torch import Tensor
 
 from .scene import Scene
 
-__all__ = ["MeshEdges", "candidate_edges", "mesh_edges"]
+__all__ = ["EdgePieces", "MeshEdges", "candidate_edges", "edge_pieces", "mesh_edges"]
 
 
 @dataclass(frozen=True)
@@ -86,3 +86,79 @@ def candidate_edges(sc: Scene, eps: float) -> tuple[Tensor, Tensor]:
     e = mesh_edges(sc, eps)
     keep = (e.share != 2) | ~e.coplanar
     return e.facet[keep], e.corner[keep]
+
+
+@dataclass(frozen=True)
+class EdgePieces:
+    """The facets' edges cut where another facet's corner lies on them, one row per geometric piece.
+
+    A piece runs over ``[t0, t1]`` of the edge from corner ``corner`` to corner ``corner + 1`` (mod 4) of ``facet``
+    (the lowest ``4 · facet + corner`` among the facets that have it), and ``facets`` lists every facet that has it
+    (``-1`` padded). Where a facet borders two smaller ones (a T-junction, as refinement and contact splits leave),
+    its edge is cut at their shared corner, so each piece is listed once with the facets on both of its sides.
+
+    Attributes:
+        facet, corner: ``[E]`` int64. t0, t1: ``[E]`` float64 in ``[0, 1]``. facets: ``[E, M]`` int64.
+    """
+
+    facet: Tensor
+    corner: Tensor
+    t0: Tensor
+    t1: Tensor
+    facets: Tensor
+
+
+def edge_pieces(sc: Scene, eps: float, chunk: int = 1 << 22) -> EdgePieces:
+    """Cut every edge at the corners of other facets that lie on it (within ``eps`` metres), then group the pieces
+    by their end points (:class:`EdgePieces`). Not differentiated; ``chunk`` bounds the (edge, corner) tests at
+    once."""
+    c = sc.corners.detach().double().cpu()
+    F = c.shape[0]
+    a, b = c.reshape(-1, 3), torch.roll(c, -1, dims=1).reshape(-1, 3)
+    flat_id = torch.arange(4 * F)
+    real = (b - a).norm(dim=-1) > eps
+    flat_id, a, b = flat_id[real], a[real], b[real]
+    verts = torch.unique(torch.round(c.reshape(-1, 3) / eps), dim=0) * eps  # the corners, each once
+    d = b - a
+    length2 = (d * d).sum(-1)
+    cuts_e, cuts_t = [], []
+    per = max(1, chunk // max(1, verts.shape[0]))
+    for s in range(0, a.shape[0], per):
+        aa, dd, ll = a[s : s + per, None], d[s : s + per, None], length2[s : s + per, None]
+        t = ((verts[None] - aa) * dd).sum(-1) / ll  # [e, V]
+        off = (aa + t[..., None] * dd - verts[None]).norm(dim=-1)
+        inner = (off <= eps) & (t * ll.sqrt() > eps) & ((1 - t) * ll.sqrt() > eps)
+        e, v = torch.nonzero(inner, as_tuple=True)
+        cuts_e.append(e + s)
+        cuts_t.append(t[e, v])
+    ce, ct = torch.cat(cuts_e), torch.cat(cuts_t)
+    n = a.shape[0]
+    # every edge's breakpoints: 0, its cuts, 1; sorted by (edge, t)
+    pe = torch.cat([torch.arange(n), ce, torch.arange(n)])
+    pt = torch.cat([torch.zeros(n, dtype=torch.float64), ct, torch.ones(n, dtype=torch.float64)])
+    order = torch.argsort(pt, stable=True)
+    order = order[torch.argsort(pe[order], stable=True)]
+    pe, pt = pe[order], pt[order]
+    same = pe[1:] == pe[:-1]
+    keep = same & (pt[1:] > pt[:-1])
+    edge, t0, t1 = pe[:-1][keep], pt[:-1][keep], pt[1:][keep]
+    p0 = a[edge] + t0[:, None] * d[edge]
+    p1 = a[edge] + t1[:, None] * d[edge]
+    k0, k1 = torch.round(p0 / eps).long(), torch.round(p1 / eps).long()
+    lead = (k0 != k1).int().argmax(-1)
+    swap = (k0.gather(1, lead[:, None]) > k1.gather(1, lead[:, None]))[:, 0]
+    key = torch.cat([torch.where(swap[:, None], k1, k0), torch.where(swap[:, None], k0, k1)], 1)
+    _, group, count = torch.unique(key, dim=0, return_inverse=True, return_counts=True)
+    member = flat_id[edge]
+    order = torch.argsort(member, stable=True)
+    order = order[torch.argsort(group[order], stable=True)]  # by group, then by 4 · facet + corner
+    g_sorted = group[order]
+    first = torch.ones_like(g_sorted, dtype=torch.bool)
+    first[1:] = g_sorted[1:] != g_sorted[:-1]
+    start = torch.nonzero(first).reshape(-1)
+    rank = torch.arange(g_sorted.numel()) - start[torch.cumsum(first.long(), 0) - 1]
+    M = int(count.max()) if count.numel() else 1
+    facets = torch.full((count.numel(), M), -1, dtype=torch.int64)
+    facets[g_sorted, rank] = member[order] // 4
+    lead_row = order[first]  # the piece standing for its group
+    return EdgePieces(member[lead_row] // 4, member[lead_row] % 4, t0[lead_row], t1[lead_row], facets)

@@ -311,10 +311,19 @@ class Interreflection(nn.Module):
         self._ff_cache = None
         g = self.image_gradient
         if g is not None:  # a plain attribute (it carries a graph): moved with the buffers, its graph kept
-            moved = {f.name: fn(getattr(g, f.name)) for f in dataclasses.fields(g)
-                     if isinstance(getattr(g, f.name), Tensor)}
-            self.image_gradient = dataclasses.replace(g, **moved)
+            self.image_gradient = dataclasses.replace(g, **{f.name: _moved(fn, getattr(g, f.name))
+                                                          for f in dataclasses.fields(g)
+                                                          if isinstance(getattr(g, f.name), Tensor)})
         return super()._apply(fn, recurse)
+
+
+def _moved(fn: Any, t: Tensor) -> Tensor:
+    """``fn`` (a module's ``.to`` / ``.double()`` ...) applied to a tensor; a sparse COO one is rebuilt from its moved
+    indices and values (casting it whole breaks its backward)."""
+    if t.layout == torch.sparse_coo:
+        return torch.sparse_coo_tensor(fn(t.indices()), fn(t.values()), tuple(t.shape), is_coalesced=t.is_coalesced(),
+                                       check_invariants=False)
+    return fn(t)
 
 
 # ---------------------------------------------------------------------------------------- construction steps
