@@ -38,6 +38,23 @@ class MeshEdges:
     coplanar: Tensor
 
 
+def _facet_edges(sc: Scene, eps: float) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """``(corners [F, 4, 3], flat id [E], start [E, 3], end [E, 3])`` of every edge longer than ``eps`` (float64,
+    CPU; ``flat id = 4 · facet + corner``, the edge from that corner to the next)."""
+    c = sc.corners.detach().double().cpu()
+    a, b = c.reshape(-1, 3), torch.roll(c, -1, dims=1).reshape(-1, 3)
+    real = (b - a).norm(dim=-1) > eps
+    return c, torch.arange(4 * c.shape[0])[real], a[real], b[real]
+
+
+def _end_key(a: Tensor, b: Tensor, eps: float) -> Tensor:
+    """A key ``[E, 6]`` (int64) of each segment's two end points rounded to ``eps``, the same for either direction."""
+    ka, kb = torch.round(a / eps).long(), torch.round(b / eps).long()
+    lead = (ka != kb).int().argmax(-1)  # order the two ends lexicographically
+    swap = (ka.gather(1, lead[:, None]) > kb.gather(1, lead[:, None]))[:, 0]
+    return torch.cat([torch.where(swap[:, None], kb, ka), torch.where(swap[:, None], ka, kb)], 1)
+
+
 def mesh_edges(sc: Scene, eps: float) -> MeshEdges:
     """Group the facets' edges by their end points (rounded to ``eps`` metres). Not differentiated.
 
@@ -48,17 +65,8 @@ def mesh_edges(sc: Scene, eps: float) -> MeshEdges:
     Returns:
         The :class:`MeshEdges` of the scene, on the CPU.
     """
-    c = sc.corners.detach().double().cpu()
-    F = c.shape[0]
-    a, b = c.reshape(-1, 3), torch.roll(c, -1, dims=1).reshape(-1, 3)
-    flat_id = torch.arange(4 * F)
-    real = (b - a).norm(dim=-1) > eps
-    flat_id, a, b = flat_id[real], a[real], b[real]
-    ka, kb = torch.round(a / eps).long(), torch.round(b / eps).long()
-    lead = (ka != kb).int().argmax(-1)  # order the two ends lexicographically
-    swap = (ka.gather(1, lead[:, None]) > kb.gather(1, lead[:, None]))[:, 0]
-    key = torch.cat([torch.where(swap[:, None], kb, ka), torch.where(swap[:, None], ka, kb)], 1)
-    _, group, count = torch.unique(key, dim=0, return_inverse=True, return_counts=True)
+    c, flat_id, a, b = _facet_edges(sc, eps)
+    _, group, count = torch.unique(_end_key(a, b, eps), dim=0, return_inverse=True, return_counts=True)
     order = torch.argsort(group, stable=True)  # within a group: ascending flat index
     _, first = np.unique(group[order].numpy(), return_index=True)
     first_t = torch.as_tensor(first)
@@ -112,12 +120,7 @@ def edge_pieces(sc: Scene, eps: float, chunk: int = 1 << 22) -> EdgePieces:
     """Cut every edge at the corners of other facets that lie on it (within ``eps`` metres), then group the pieces
     by their end points (:class:`EdgePieces`). Not differentiated; ``chunk`` bounds the (edge, corner) tests at
     once."""
-    c = sc.corners.detach().double().cpu()
-    F = c.shape[0]
-    a, b = c.reshape(-1, 3), torch.roll(c, -1, dims=1).reshape(-1, 3)
-    flat_id = torch.arange(4 * F)
-    real = (b - a).norm(dim=-1) > eps
-    flat_id, a, b = flat_id[real], a[real], b[real]
+    c, flat_id, a, b = _facet_edges(sc, eps)
     verts = torch.unique(torch.round(c.reshape(-1, 3) / eps), dim=0) * eps  # the corners, each once
     d = b - a
     length2 = (d * d).sum(-1)
@@ -144,11 +147,7 @@ def edge_pieces(sc: Scene, eps: float, chunk: int = 1 << 22) -> EdgePieces:
     edge, t0, t1 = pe[:-1][keep], pt[:-1][keep], pt[1:][keep]
     p0 = a[edge] + t0[:, None] * d[edge]
     p1 = a[edge] + t1[:, None] * d[edge]
-    k0, k1 = torch.round(p0 / eps).long(), torch.round(p1 / eps).long()
-    lead = (k0 != k1).int().argmax(-1)
-    swap = (k0.gather(1, lead[:, None]) > k1.gather(1, lead[:, None]))[:, 0]
-    key = torch.cat([torch.where(swap[:, None], k1, k0), torch.where(swap[:, None], k0, k1)], 1)
-    _, group, count = torch.unique(key, dim=0, return_inverse=True, return_counts=True)
+    _, group, count = torch.unique(_end_key(p0, p1, eps), dim=0, return_inverse=True, return_counts=True)
     member = flat_id[edge]
     order = torch.argsort(member, stable=True)
     order = order[torch.argsort(group[order], stable=True)]  # by group, then by 4 · facet + corner
