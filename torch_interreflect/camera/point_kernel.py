@@ -36,13 +36,19 @@ def _real_vertices(poly: Tensor, eps: float) -> Tensor:
     return torch.where(same, idx, torch.full_like(idx, poly.shape[1])).amin(1)
 
 
-def _target_samples(corners: Tensor, n: int, gen: torch.Generator) -> tuple[Tensor, Tensor]:
-    """Jittered stratified points ``[F, n², 3]`` and their area weights ``[F, n²]`` on every facet (bilinear map)."""
+def _target_samples(corners: Tensor, triangle: Tensor, n: int, gen: torch.Generator) -> tuple[Tensor, Tensor]:
+    """Jittered stratified points ``[F, n², 3]`` and their area weights ``[F, n²]`` on every facet (bilinear map).
+
+    On a triangle (corners ``c0, c1, c2, c2``) the bilinear map crowds equal strata toward ``c2``; ``v = 1 −
+    √(1 − v')`` spreads them evenly over its area (each stratum the same area, weight ``J / (2 (1 − v))``)."""
     F = corners.shape[0]
     cells = torch.arange(n, dtype=torch.float64)
     u = (cells.repeat_interleave(n)[None] + torch.rand(F, n * n, dtype=torch.float64, generator=gen)) / n
     v = (cells.repeat(n)[None] + torch.rand(F, n * n, dtype=torch.float64, generator=gen)) / n
+    tri = triangle.to(torch.bool)[:, None].expand_as(v)
+    v = torch.where(tri, 1.0 - (1.0 - v).clamp_min(0.0).sqrt(), v)
     y, jac = bilinear(corners, u, v)
+    jac = torch.where(tri, jac / (2.0 * (1.0 - v).clamp_min(1e-300)), jac)
     return y, jac / (n * n)
 
 
@@ -126,7 +132,7 @@ def point_form_factors(
     caster = caster if caster is not None else RayCaster(sc)
     gen = torch.Generator().manual_seed(int(seed))
     o = torch.as_tensor(caster.origin)
-    ys, ws = _target_samples(sc.corners, int(samples), gen)
+    ys, ws = _target_samples(sc.corners, sc.is_triangle.cpu(), int(samples), gen)
     ys, ws, nf, xf = (ys - o).float(), ws.float(), sc.normals.float(), (x - o).float()
     # pairs (point, facet in front of its facet), point by point; facet pairs (fi, fj) are row-major, so the pairs
     # of facet i are fi's run starting at first[i]
