@@ -17,7 +17,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ..geometry._polygon import clip_interval, plane_eps
+from ..geometry._polygon import clip_interval, pieces_between, plane_eps, ray_plane_points
 from ..geometry.edges import edge_pieces
 from ..geometry.raycast import RayCaster
 from ..geometry.scene import Scene
@@ -30,13 +30,12 @@ __all__ = ["edge_samples", "shadow_samples"]
 _SIDE = 1e-2
 
 
-def _project(view: Any, points: Tensor) -> tuple[Tensor, Tensor]:
-    """Pixel coordinates ``[N, 2]`` (column, row) and depths ``[N]`` of points ``[N, 3]`` (differentiable)."""
+def _project(view: Any, points: Tensor) -> Tensor:
+    """Pixel coordinates ``[N, 2]`` (column, row) of points ``[N, 3]`` in front of the camera (differentiable)."""
     pin = view.pinhole(points.dtype)
     P = (pin.intrinsics[0] @ pin.extrinsics[0]).to(points.device)
     hom = points @ P[:3, :3].T + P[:3, 3]
-    z = hom[:, 2]
-    return hom[:, :2] / z[:, None], z
+    return hom[:, :2] / hom[:, 2:3]
 
 
 def _depth(view: Any, points: Tensor) -> Tensor:
@@ -71,13 +70,7 @@ def _pixel_pieces(ua: Tensor, ub: Tensor, s0: Tensor, s1: Tensor, ok: Tensor) ->
         d = (ub - ua)[idx[e], axis]
         edges.append(idx[e])
         params.append((line - ua[idx[e], axis]) / torch.where(d != 0, d, torch.ones_like(d)))
-    edge, par = torch.cat(edges), torch.cat(params)
-    order = torch.argsort(par, stable=True)
-    order = order[torch.argsort(edge[order], stable=True)]
-    edge, par = edge[order], par[order]
-    same = edge[1:] == edge[:-1]
-    keep = same & (par[1:] > par[:-1])
-    return edge[:-1][keep], par[:-1][keep], par[1:][keep]
+    return pieces_between(torch.cat(edges), torch.cat(params))
 
 
 def _side_hits(op: Gather, caster: RayCaster, q: Tensor, sc: Scene) -> tuple[Tensor, Tensor, Tensor]:
@@ -90,9 +83,7 @@ def _side_hits(op: Gather, caster: RayCaster, q: Tensor, sc: Scene) -> tuple[Ten
     hit = torch.from_numpy(caster.first_hit(np.broadcast_to(eye.numpy(), d.shape), d.numpy())).long()
     h = hit.clamp_min(0)
     n = sc.normals[h]
-    nd = (n * d).sum(-1)
-    t = ((sc.centroids[h] - eye) * n).sum(-1) / torch.where(nd != 0, nd, torch.ones_like(nd))
-    return hit, (hit >= 0) & (nd < 0), eye + t[:, None] * d
+    return hit, (hit >= 0) & ((n * d).sum(-1) < 0), ray_plane_points(eye, d, sc.centroids[h], n)
 
 
 def _fragment_at(op: Gather, pixel: Tensor, facet: Tensor) -> Tensor:
@@ -143,7 +134,7 @@ def _screen_samples(op: Gather, a: Tensor, b: Tensor, spacing: float) -> _Sample
     keep = front.to(a.device)[:, None]
     target = torch.tensor(op.view.target, dtype=a.dtype, device=a.device)
     a, b = torch.where(keep, a, target), torch.where(keep, b, target + 1.0)
-    ua, ub = _project(op.view, a)[0], _project(op.view, b)[0]
+    ua, ub = _project(op.view, a), _project(op.view, b)
     H, W = op.height, op.width
     uad, ubd = ua.detach().double().cpu(), ub.detach().double().cpu()
     s0, s1 = _screen_clip(uad, ubd, H, W)

@@ -11,6 +11,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from ..geometry._polygon import ray_plane_points
 from ..geometry.raycast import RayCaster
 from ..geometry.scene import Scene
 from .view import View
@@ -27,8 +28,7 @@ def primary_fragments(scene: Scene, view: View, s: int, caster: RayCaster) -> di
     hc = hit.clamp_min(0)
     nd = (sc.normals[hc] * dirs).sum(-1)
     front = ok & (nd < 0)
-    t = ((sc.centroids[hc] - eye) * sc.normals[hc]).sum(-1) / torch.where(nd != 0, nd, torch.ones_like(nd))
-    pts = eye + t[:, None] * dirs
+    pts = ray_plane_points(eye, dirs, sc.centroids[hc], sc.normals[hc])
     h, w = view.height, view.width
     rows = (torch.arange(h * s)[:, None] // s * w + torch.arange(w * s)[None, :] // s).reshape(-1)
     F = sc.num_facets

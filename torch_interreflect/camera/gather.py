@@ -344,11 +344,9 @@ def gathered_radiance(op: Gather, reflectance: Tensor, irradiance: Tensor, spd: 
     if direct is not None and direct.shape != (op.num_fragments,):
         raise ShapeError(f"direct must be [K] with K = {op.num_fragments} (one per fragment); got {list(direct.shape)}")
     own_direct = direct is None  # the operator's light: the gradient's direct-light terms apply to it
-    if own_direct:
-        direct = op.direct.to(device=E.device, dtype=E.dtype)
-        if gradient is not None and gradient.direct is not None:
-            direct = direct + gradient.direct.to(direct)
-    direct = direct.to(device=E.device, dtype=E.dtype)
+    direct = (op.direct if own_direct else direct).to(device=E.device, dtype=E.dtype)
+    if own_direct and gradient is not None and gradient.direct is not None:
+        direct = direct + gradient.direct.to(direct)
     e_frag = direct[:, None] * S[..., None, :] + _columns(op.gather, r * E)  # [..., K, L]
     if gradient is not None and gradient.gather is not None:
         moved = _columns(gradient.gather, r * E)

@@ -47,7 +47,7 @@ from ..errors import GradientWarning, ShapeError
 from ..formfactors.fused import point_polygon_factors
 from ..formfactors.visibility import blocker_candidates
 from ..formfactors.visibility_grad import boundary_values, interior_values, shadow_spans
-from ..geometry._polygon import bilinear, clip_polygons, plane_eps, quad_coordinates
+from ..geometry._polygon import bilinear, clip_polygons, plane_eps, quad_coordinates, ray_plane_points
 from ..geometry.edges import candidate_edges
 from ..geometry.raycast import RayCaster
 from ..geometry.scene import Scene
@@ -70,9 +70,7 @@ def _hit_points(op: Gather, scene: Scene) -> tuple[Tensor, Tensor]:
     d = dirs[ray_index].to(device=scene.device, dtype=scene.dtype)
     e = eye.to(device=scene.device, dtype=scene.dtype)
     h = op.fragment_facet.cpu()[op.ray_fragment.cpu()].to(scene.device)
-    n, c = scene.normals[h], scene.centroids[h]
-    t = ((c - e) * n).sum(-1) / (d * n).sum(-1)
-    return e + t[:, None] * d, h
+    return ray_plane_points(e, d, scene.centroids[h], scene.normals[h]), h
 
 
 def _group_mean(values: Tensor, group: Tensor, size: int) -> Tensor:
@@ -159,7 +157,7 @@ def _visibility_delta(scene: Scene, x: Tensor, rows: Tensor, cols: Tensor, facet
         return out
     dom, tgt = h[sel], j[sel]
     xp = x.to(torch.float64).to("cpu")[rows.cpu()[sel]]  # [P', 3], differentiable
-    u, v = _facet_coordinates(sc, dom, xp.detach())
+    u, v = quad_coordinates(cd[dom], xp.detach())  # exact on triangles too (Gauss–Newton converges there)
     rule = (u[:, None], v[:, None], torch.ones(1, dtype=torch.float64))
     edges = candidate_edges(sc, eps)
     spans = shadow_spans(sc, dom, tgt, rule, edges, eps)
@@ -170,26 +168,6 @@ def _visibility_delta(scene: Scene, x: Tensor, rows: Tensor, cols: Tensor, facet
     jac = bilinear(cd[dom], u[:, None], v[:, None])[1][:, 0]  # the rule's area element: per point, divide it out
     val = torch.where(jac > 0, val / jac.clamp_min(1e-300), torch.zeros_like(val))
     return out.index_add(0, sel.to(scene.device), val.to(device=scene.device, dtype=scene.dtype))
-
-
-def _facet_coordinates(sc: Scene, facet: Tensor, x: Tensor) -> tuple[Tensor, Tensor]:
-    """Unit-square coordinates ``(u, v)`` ``[n]`` of points ``x [n, 3]`` on their facets: Gauss–Newton on quads
-    (:func:`~torch_interreflect.geometry._polygon.quad_coordinates`), exact on triangles (corners ``c0, c1, c2, c2``:
-    ``v = λ2``, ``u = λ1 / (1 − v)`` from the barycentric coordinates)."""
-    cd = sc.corners.detach()
-    u, v = quad_coordinates(cd[facet], x)
-    tri = sc.is_triangle.cpu()[facet]
-    if bool(tri.any()):
-        c = cd[facet[tri]]
-        e1, e2, r = c[:, 1] - c[:, 0], c[:, 2] - c[:, 0], x[tri] - c[:, 0]
-        a11, a12, a22 = (e1 * e1).sum(-1), (e1 * e2).sum(-1), (e2 * e2).sum(-1)
-        b1, b2 = (r * e1).sum(-1), (r * e2).sum(-1)
-        det = (a11 * a22 - a12 * a12).clamp_min(1e-300)
-        l1, l2 = (a22 * b1 - a12 * b2) / det, (a11 * b2 - a12 * b1) / det
-        vt = l2.clamp(0.0, 1.0)
-        u[tri] = torch.where(vt < 1.0, l1 / (1.0 - vt).clamp_min(1e-300), torch.zeros_like(l1)).clamp(0.0, 1.0)
-        v[tri] = vt
-    return u, v
 
 
 def _direct_delta(op: Gather, scene: Scene, light: Any, h_ray: Tensor, rows: Tensor | None,

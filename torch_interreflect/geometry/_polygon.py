@@ -263,3 +263,21 @@ def quad_coordinates(quads: Tensor, y: Tensor, iterations: int = 4) -> tuple[Ten
         u = u + (cc * f - bb * g) / det
         v = v + (a * g - bb * f) / det
     return u, v
+
+
+def pieces_between(segment: Tensor, par: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """The pieces between consecutive break points of each segment: ``(segment, start, end)`` ``[n]`` of positive
+    length, from break points given as ``segment [N]`` (int64) and their parameters ``par [N]`` in any order."""
+    order = torch.argsort(par, stable=True)
+    order = order[torch.argsort(segment[order], stable=True)]
+    segment, par = segment[order], par[order]
+    keep = (segment[1:] == segment[:-1]) & (par[1:] > par[:-1])
+    return segment[:-1][keep], par[:-1][keep], par[1:][keep]
+
+
+def ray_plane_points(origin: Tensor, direction: Tensor, centre: Tensor, normal: Tensor) -> Tensor:
+    """Where rays ``origin + t · direction`` meet the planes ``(centre, normal)`` (broadcast, ``[..., 3]``;
+    differentiable; a ray parallel to its plane gets ``t = (centre − origin)·normal``)."""
+    nd = (normal * direction).sum(-1)
+    t = ((centre - origin) * normal).sum(-1) / torch.where(nd != 0, nd, torch.ones_like(nd))
+    return origin + t[..., None] * direction

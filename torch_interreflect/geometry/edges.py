@@ -14,6 +14,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from ._polygon import pieces_between
 from .scene import Scene
 
 __all__ = ["EdgePieces", "MeshEdges", "candidate_edges", "edge_pieces", "mesh_edges"]
@@ -136,15 +137,10 @@ def edge_pieces(sc: Scene, eps: float, chunk: int = 1 << 22) -> EdgePieces:
         cuts_t.append(t[e, v])
     ce, ct = torch.cat(cuts_e), torch.cat(cuts_t)
     n = a.shape[0]
-    # every edge's breakpoints: 0, its cuts, 1; sorted by (edge, t)
+    # every edge's break points: 0, its cuts, 1
     pe = torch.cat([torch.arange(n), ce, torch.arange(n)])
     pt = torch.cat([torch.zeros(n, dtype=torch.float64), ct, torch.ones(n, dtype=torch.float64)])
-    order = torch.argsort(pt, stable=True)
-    order = order[torch.argsort(pe[order], stable=True)]
-    pe, pt = pe[order], pt[order]
-    same = pe[1:] == pe[:-1]
-    keep = same & (pt[1:] > pt[:-1])
-    edge, t0, t1 = pe[:-1][keep], pt[:-1][keep], pt[1:][keep]
+    edge, t0, t1 = pieces_between(pe, pt)
     p0 = a[edge] + t0[:, None] * d[edge]
     p1 = a[edge] + t1[:, None] * d[edge]
     _, group, count = torch.unique(_end_key(p0, p1, eps), dim=0, return_inverse=True, return_counts=True)
