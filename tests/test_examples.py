@@ -53,7 +53,7 @@ def test_shape_from_mitsuba_recovers_the_shapes():
     """Against the shipped Mitsuba renders, infinite bounces recover the shapes; two bounces do not.
 
     Measured (40 L-BFGS steps): groove 29.76° / 0.903 (refined leaves 29.93° / 0.901), two-bounce 41.9° / 1.000;
-    W fold 43.84° / 4.019 cm / 0.906, two-bounce 54.3° / 4.10 cm / 1.000; truth 30° / 0.9 and 45° / 4 cm / 0.9."""
+    W fold 43.87° / 4.025 cm / 0.906, two-bounce 54.35° / 4.016 cm / 1.000; truth 30° / 0.9 and 45° / 4 cm / 0.9."""
     r = _load("shape_from_mitsuba").main(["--steps", "40"])
     g, w = "vgroove30_sun_r9", "w_shape_sun_r9"
     assert abs(r[f"{g}/infinite/angle (°)"] - 30.0) < 0.5 and abs(r[f"{g}/infinite/reflectance"] - 0.9) < 0.01
