@@ -8,7 +8,7 @@ OUT    ?= out
 
 .PHONY: install demo train-cc test lint bench bench-install bench-speed bench-solver bench-formfactors \
 	bench-accuracy bench-hierarchical bench-hierarchical-quick bench-images bench-variants bench-generator bench-kernel \
-	bench-geometry-grad clean
+	bench-geometry-grad bench-cc clean
 
 $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
@@ -61,6 +61,10 @@ bench-images: bench-install
 
 bench-variants: bench-install
 	DRJIT_LIBLLVM_PATH=$${DRJIT_LIBLLVM_PATH:-libLLVM.so.19.1} $(BIN)/python -m benchmarks.variants --quick
+
+# the colour-constancy study: 3 training seeds, held-out and Mitsuba path-traced test sets (README states its time)
+bench-cc: bench-install
+	DRJIT_LIBLLVM_PATH=$${DRJIT_LIBLLVM_PATH:-libLLVM.so.19.1} $(BIN)/python -m benchmarks.colour_constancy --study
 
 bench-generator: $(STAMP)
 	$(BIN)/python -m benchmarks.generator

@@ -1,41 +1,59 @@
-"""Colour constancy: representation floors of the illuminant models, and a small multi-seed study with intervals.
+"""Colour constancy: representation floors of the illuminant models, and a multi-seed study with intervals.
 
 ``--floors``: per illuminant family, the best camera-RGB angular error the any-illuminant basis
 (:func:`torch_interreflect.spectral.illuminant_basis`) reaches, against the former CIE-daylight ``(M1, M2)`` model
 (:mod:`torch_interreflect.training.floors`).
 
-``--study``: ``interreflect train-cc`` with ``--seeds`` training seeds on one generated data set (the held-out
-split is the last 20 % of the scenes), then per held-out image and seed the angular errors of every method, and of
-the geometry refinement (:func:`torch_interreflect.training.refine_illuminant`) started from the physics-informed
-network and from the ∞-bounce FC4 with infinite bounces, and (first seed) two-bounce and direct-only models as
-ablations. Differences between methods are paired per image (errors averaged over the seeds first) and given with
+``--study``: ``interreflect train-cc`` with ``--seeds`` training seeds on one generated data set (generated first in
+``--workers`` shards at once; the held-out split is the last 20 % of the scenes, of which the first ``--max-test``
+are scored), then per test image and seed the angular errors of every method:
+
+- without geometry: Grey-World, White-Patch, Grey-Edge, the FC4-style CNN trained on direct-only and on ∞-bounce
+  images, the physics-informed network;
+- with geometry: the refinement by re-rendering (:func:`torch_interreflect.training.refine_illuminant`, infinite
+  bounces) started from the physics-informed network and from the ∞-bounce FC4; for the first seed also two-bounce
+  and direct-only re-rendering (ablations) and the refinement started from the true illuminant (what the model
+  mismatch alone costs).
+
+Two test sets: the generator's held-out scenes, and (``--pathtraced N``, default 200, when Mitsuba 3 is installed)
+``N`` images path-traced by Mitsuba 3 with their geometry files (:mod:`benchmarks.cc_pathtraced`: sun + sky, grooves,
+folds, rooms with blocks; half the illuminants and reflectances from outside the training families).
+Differences between methods are paired per image (errors averaged over the seeds first) and given with
 percentile-bootstrap 95 % intervals (10,000 resamples of the images). FFCC summaries per method and seed.
+Refinements run in ``--workers`` processes of one torch thread each.
 
 Usage::
 
     .venv/bin/python -m benchmarks.colour_constancy --floors
-    .venv/bin/python -m benchmarks.colour_constancy --study                 # small: ~10 min on a 2-core CPU
-    .venv/bin/python -m benchmarks.colour_constancy --study --count 2000 --size 64 --epochs 100 --physics-epochs 30
+    .venv/bin/python -m benchmarks.colour_constancy --study        # default: see README for its size and time
+    .venv/bin/python -m benchmarks.colour_constancy --study --count 20000 --size 64 --epochs 100 --physics-epochs 30
 
-Writes ``benchmarks/results/colour_constancy_floors.md`` / ``colour_constancy_study[...].md`` and ``.json``.
+Writes ``benchmarks/results/colour_constancy_floors.md`` / ``colour_constancy_study_{count}_{size}[_pt{N}].md`` and
+``.json``.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import multiprocessing
 import time
+from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 import numpy as np
 import torch
 
+from benchmarks._common.mitsuba import available as mitsuba_available
+from benchmarks.cc_pathtraced import render_test_set
 from torch_interreflect import spectral
 from torch_interreflect.training import (
     BASELINES,
     GeneratedDataset,
+    GeneratorConfig,
     TrainConfig,
     angular_error,
+    generate,
     load_estimator,
     refine_illuminant,
     run_train_cc,
@@ -79,21 +97,97 @@ def _net_errors(path: Path, test: GeneratedDataset) -> tuple[np.ndarray, list[to
     return np.array(errs), preds
 
 
-def _refined_errors(path: Path, test: GeneratedDataset, starts: list[torch.Tensor], bounces: int | None) -> np.ndarray:
+def _refine_images(path: str, root: str, indices: list[int], starts: list[list[float]], bounces: int | None
+                   ) -> list[float]:
+    """Angular errors of :func:`refine_illuminant` on samples ``indices`` of ``root`` (one worker's share)."""
+    torch.set_num_threads(1)
     est = load_estimator(path)
-    errs = []
-    for k in range(len(test)):
-        it = test[k]
-        r = refine_illuminant(est, it["image"], it["geometry"], starts[k], bounces=bounces)
-        errs.append(float(angular_error(r.rgb.float(), it["illuminant"])))
-    return np.array(errs)
+    test = GeneratedDataset(root, None, indices, geometry=True)
+    out = []
+    for it, start in zip(test, starts, strict=True):
+        r = refine_illuminant(est, it["image"], it["geometry"], torch.tensor(start), bounces=bounces)
+        out.append(float(angular_error(r.rgb.float(), it["illuminant"])))
+    return out
+
+
+def _refined_errors(path: Path, test: GeneratedDataset, starts: list[torch.Tensor], bounces: int | None,
+                    pool: tuple[ProcessPoolExecutor, int] | None) -> np.ndarray:
+    """Errors of the geometry refinement from ``starts`` on every image of ``test``, split over the ``(executor,
+    workers)`` processes (one torch thread each; ``None``: here)."""
+    n = len(test)
+    parts = 1 if pool is None else pool[1]
+    chunks = [list(range(k, n, parts)) for k in range(parts)]
+    jobs = [(str(path), str(test.root), [test.indices[i] for i in c], [starts[i].tolist() for i in c], bounces)
+            for c in chunks if c]
+    if pool is None:
+        results = [_refine_images(*j) for j in jobs]
+    else:
+        results = [f.result() for f in [pool[0].submit(_refine_images, *j) for j in jobs]]
+    errs = np.empty(n)
+    for c, r in zip([c for c in chunks if c], results, strict=True):
+        errs[c] = r
+    return errs
+
+
+def _score(test: GeneratedDataset, out_dir: Path, seed: int, errors: dict[str, list[np.ndarray]],
+           pool: tuple[ProcessPoolExecutor, int] | None) -> None:
+    """Append seed ``seed``'s errors of every method on ``test`` to ``errors`` (the baselines once, at seed 0)."""
+    if seed == 0:
+        for name, fn in BASELINES.items():
+            e = [float(angular_error(fn(it["image"][None], it["mask"][None])[0], it["illuminant"])) for it in test]
+            errors[name] = [np.array(e)]
+    labels = {"fc4_direct": "FC4, direct-only data", "fc4_inf": "FC4, ∞-bounce data",
+              "physics": "physics-informed (network)"}
+    starts = {}
+    for key, label in labels.items():
+        e, starts[key] = _net_errors(out_dir / f"{key}.pt", test)
+        errors.setdefault(label, []).append(e)
+    variants = [("physics", None, "physics + geometry refinement, ∞ bounces"),
+                ("fc4_inf", None, "FC4 ∞ + geometry refinement, ∞ bounces")]
+    if seed == 0:
+        variants += [("physics", 2, "physics + geometry refinement, 2 bounces (seed 0)"),
+                     ("physics", 1, "physics + geometry refinement, direct only (seed 0)")]
+    if seed == 0:  # the model's own floor: the refinement started at the answer
+        starts["truth"] = [it["illuminant"] for it in test]
+        variants.append(("truth", None, "geometry refinement from the true illuminant (seed 0)"))
+    for key, b, label in variants:
+        path = out_dir / f"{'physics' if key == 'truth' else key}.pt"
+        errors.setdefault(label, []).append(_refined_errors(path, test, starts[key], b, pool))
+
+
+def _generate_shard(data: str, config: GeneratorConfig, shard: tuple[int, int]) -> None:
+    generate(data, config, shard=shard, progress=False)
+
+
+def _generate(args: argparse.Namespace) -> None:
+    """The seed-0 data of the study, generated in ``args.workers`` shards at once (what ``run_train_cc`` would
+    otherwise generate in one process)."""
+    gen = GeneratorConfig(count=args.count, seed=0, size=(args.size, args.size))
+    if args.workers <= 1:
+        return _generate_shard(args.data, gen, (0, 1))
+    with ProcessPoolExecutor(args.workers, mp_context=multiprocessing.get_context("spawn")) as ex:
+        for f in [ex.submit(_generate_shard, args.data, gen, (k, args.workers)) for k in range(args.workers)]:
+            f.result()
+    return None
 
 
 def study(args: argparse.Namespace, out: Path) -> str:
     t_all = time.perf_counter()
-    errors: dict[str, list[np.ndarray]] = {}
+    errors: dict[str, dict[str, list[np.ndarray]]] = {}
     seconds: dict[str, float] = {}
-    test = None
+    sets: dict[str, GeneratedDataset] = {}
+    spawn = multiprocessing.get_context("spawn")
+    ex = ProcessPoolExecutor(args.workers, mp_context=spawn) if args.workers > 1 else None
+    pool = None if ex is None else (ex, args.workers)
+    if args.pathtraced:
+        t = time.perf_counter()
+        root = render_test_set(Path(args.data).parent / f"cc-pathtraced-{args.size}", args.pathtraced, args.size,
+                               progress=False)
+        sets["path-traced (Mitsuba)"] = GeneratedDataset(root, None, None, geometry=True)
+        seconds["path-traced set"] = time.perf_counter() - t
+    t = time.perf_counter()
+    _generate(args)
+    seconds["data"] = time.perf_counter() - t
     for seed in range(args.seeds):
         cfg = TrainConfig(data=args.data, out=f"{args.data}/study-seed{seed}", count=args.count, seed=seed,
                           size=(args.size, args.size), epochs=args.epochs, physics_epochs=args.physics_epochs,
@@ -101,35 +195,22 @@ def study(args: argparse.Namespace, out: Path) -> str:
         t = time.perf_counter()
         res = run_train_cc(cfg)
         seconds[f"train seed {seed}"] = time.perf_counter() - t
-        seconds.update({f"{k} seed {seed}": v for k, v in res["seconds"].items()})
+        seconds.update({f"{k} seed {seed}": v for k, v in res["seconds"].items() if k != "data"})
         _, test_idx = split_indices(args.count, cfg.test_fraction)
-        test = GeneratedDataset(args.data, None, test_idx, geometry=True)
-        if seed == 0:
-            for name, fn in BASELINES.items():
-                e = [float(angular_error(fn(it["image"][None], it["mask"][None])[0], it["illuminant"]))
-                     for it in test]
-                errors[name] = [np.array(e)] * args.seeds
-        labels = {"fc4_direct": "FC4, direct-only data", "fc4_inf": "FC4, ∞-bounce data",
-                  "physics": "physics-informed (network)"}
-        starts = {}
-        for key, label in labels.items():
-            e, starts[key] = _net_errors(cfg.out_dir / f"{key}.pt", test)
-            errors.setdefault(label, []).append(e)
-        t = time.perf_counter()
-        variants = [("physics", None, "physics + geometry refinement, ∞ bounces"),
-                    ("fc4_inf", None, "FC4 ∞ + geometry refinement, ∞ bounces")]
-        if seed == 0:
-            variants += [("physics", 2, "physics + geometry refinement, 2 bounces (seed 0)"),
-                         ("physics", 1, "physics + geometry refinement, direct only (seed 0)")]
-        for key, b, label in variants:
-            errors.setdefault(label, []).append(_refined_errors(cfg.out_dir / f"{key}.pt", test, starts[key], b))
-        seconds[f"refine seed {seed}"] = time.perf_counter() - t
+        held_out = GeneratedDataset(args.data, None, test_idx[: args.max_test], geometry=True)
+        sets = {"held-out (generator)": held_out, **sets}
+        for name, test in sets.items():
+            t = time.perf_counter()
+            _score(test, cfg.out_dir, seed, errors.setdefault(name, {}), pool)
+            seconds[f"score {name} seed {seed}"] = time.perf_counter() - t
+    if ex is not None:
+        ex.shutdown()
     seconds["total"] = time.perf_counter() - t_all
-    return _report(args, errors, seconds, len(test) if test is not None else 0, out)
+    return _report(args, errors, seconds, {k: len(v) for k, v in sets.items()}, out)
 
 
-def _report(args: argparse.Namespace, errors: dict[str, list[np.ndarray]], seconds: dict[str, float], n_test: int,
-            out: Path) -> str:
+def _tables(errors: dict[str, list[np.ndarray]]) -> str:
+    """The per-method table and the paired differences of one test set."""
     rows: dict[str, dict[str, float]] = {}
     for m, v in errors.items():
         if m in BASELINES:
@@ -151,16 +232,22 @@ def _report(args: argparse.Namespace, errors: dict[str, list[np.ndarray]], secon
             m, lo, hi = bootstrap(src[a] - src[b])
             tag = " (seed 0)" if src is e0 else " (mean over seeds)"
             lines.append(f"| {a} − {b}{tag} | {m:+.2f} | [{lo:+.2f}, {hi:+.2f}] |")
-    header = (f"Study: {args.count} samples at {args.size}×{args.size} (seed-0 data), {n_test} held-out scenes, "
-              f"{args.seeds} training seeds, epochs {args.epochs} / physics {args.physics_epochs}, width "
-              f"{args.width}; total {seconds['total'] / 60:.1f} min.\n\n")
-    text = (header + format_table(rows) + "\n\nPaired differences (negative: A better), percentile bootstrap over the "
-            "held-out images:\n\n" + "\n".join(lines) + "\n\nSeconds: "
-            + ", ".join(f"{k} {v:.0f}" for k, v in seconds.items()) + "\n")
-    stem = f"colour_constancy_study_{args.count}_{args.size}"
+    return (format_table(rows) + "\n\nPaired differences (negative: A better), percentile bootstrap over the "
+            "images:\n\n" + "\n".join(lines) + "\n")
+
+
+def _report(args: argparse.Namespace, errors: dict[str, dict[str, list[np.ndarray]]], seconds: dict[str, float],
+            sizes: dict[str, int], out: Path) -> str:
+    header = (f"Study: {args.count} samples at {args.size}×{args.size} (seed-0 data), {args.seeds} training seeds, "
+              f"epochs {args.epochs} / physics {args.physics_epochs}, width {args.width}; total "
+              f"{seconds['total'] / 60:.1f} min.\n")
+    body = "".join(f"\n## Test set: {name}, {sizes[name]} images\n\n" + _tables(e) for name, e in errors.items())
+    text = header + body + "\nSeconds: " + ", ".join(f"{k} {v:.0f}" for k, v in seconds.items()) + "\n"
+    stem = f"colour_constancy_study_{args.count}_{args.size}" + (f"_pt{args.pathtraced}" if args.pathtraced else "")
     (out / f"{stem}.md").write_text(text)
-    (out / f"{stem}.json").write_text(json.dumps({"errors": {m: [e.tolist() for e in v] for m, v in errors.items()},
-                                                   "seconds": seconds, "args": vars(args)}, indent=1) + "\n")
+    dump = {"errors": {n: {m: [x.tolist() for x in v] for m, v in e.items()} for n, e in errors.items()},
+            "seconds": seconds, "args": vars(args)}
+    (out / f"{stem}.json").write_text(json.dumps(dump, indent=1) + "\n")
     return text
 
 
@@ -175,9 +262,17 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--epochs", type=int, default=30)
     p.add_argument("--physics-epochs", type=int, default=4)
     p.add_argument("--width", type=int, default=8)
+    p.add_argument("--workers", type=int, default=2, help="processes for the data and the refinements")
+    p.add_argument("--max-test", type=int, default=200, help="held-out images scored (the first ones)")
+    p.add_argument("--pathtraced", type=int, default=200, metavar="N",
+                   help="also score on N Mitsuba path-traced images with geometry (benchmarks.cc_pathtraced; "
+                        "0: not; skipped when Mitsuba is missing)")
     args = p.parse_args(argv)
     torch.set_num_threads(1)
     RESULTS.mkdir(exist_ok=True)
+    if args.study and args.pathtraced and not mitsuba_available("llvm_ad_spectral"):
+        print("Mitsuba 3 (llvm_ad_spectral) is not available (`make bench-install`): no path-traced test set")
+        args.pathtraced = 0
     if args.floors:
         print(floors(RESULTS))
     if args.study:

@@ -75,11 +75,13 @@ __all__ = [
     "RenderResult",
     "Sky",
     "available",
+    "load_mitsuba",
     "load_reference",
     "pilot_and_extend",
     "pooled",
     "reference_names",
     "reference_specs",
+    "spectrum_dict",
 ]
 
 
@@ -87,13 +89,13 @@ __all__ = [
 def available(variant: str = "llvm_ad_mono") -> bool:
     """Whether Mitsuba 3 imports and offers ``variant`` on this machine."""
     try:
-        _mitsuba(variant)
+        load_mitsuba(variant)
     except Exception:
         return False
     return True
 
 
-def _mitsuba(variant: str) -> Any:
+def load_mitsuba(variant: str) -> Any:
     try:
         import mitsuba as mi
     except ImportError as exc:  # pragma: no cover - depends on the environment
@@ -172,7 +174,7 @@ def _normals(corners: np.ndarray) -> np.ndarray:
     return n / np.linalg.norm(n, axis=1, keepdims=True)
 
 
-def _spectrum(value: Any, wavelengths: np.ndarray | None, *, step: bool = False) -> dict:
+def spectrum_dict(value: Any, wavelengths: np.ndarray | None, *, step: bool = False) -> dict:
     """A Mitsuba spectrum dict: a uniform value (mono) or a spectrum on the wavelength grid."""
     v = np.asarray(value, dtype=np.float64)
     if wavelengths is None:
@@ -250,7 +252,7 @@ class MitsubaReference:
         t0 = time.perf_counter()
         self.variant = variant
         self.spectral = "spectral" in variant
-        mi = self.mi = _mitsuba(variant)
+        mi = self.mi = load_mitsuba(variant)
         import drjit as dr
 
         self.dr = dr
@@ -299,7 +301,7 @@ class MitsubaReference:
         d: dict[str, Any] = {"type": "scene", "integrator": {"type": "path", "max_depth": -1}}
         step = sensors and self.spectral
         if isinstance(light, Sky):
-            d["light"] = {"type": "constant", "radiance": _spectrum(light.radiance, self.wavelengths, step=step)}
+            d["light"] = {"type": "constant", "radiance": spectrum_dict(light.radiance, self.wavelengths, step=step)}
         elif isinstance(light, Directional):
             dvec = np.asarray(light.direction, np.float64)
             dvec = dvec / np.linalg.norm(dvec)
@@ -307,7 +309,7 @@ class MitsubaReference:
             d["light"] = {
                 "type": "directional",
                 "direction": [float(x) for x in dvec],
-                "irradiance": _spectrum(light.irradiance, self.wavelengths, step=step),
+                "irradiance": spectrum_dict(light.irradiance, self.wavelengths, step=step),
             }
         elif light is not None or emission is None:
             raise TypeError(f"light must be Directional or Sky; got {type(light).__name__}")
@@ -317,13 +319,13 @@ class MitsubaReference:
         for i in range(F):
             props = mi.Properties()
             props["bsdf"] = mi.load_dict(
-                {"type": "diffuse", "reflectance": _spectrum(refl[i], self.wavelengths, step=step)}
+                {"type": "diffuse", "reflectance": spectrum_dict(refl[i], self.wavelengths, step=step)}
             )
             if sensors:
                 props["sensor"] = mi.load_dict(self._sensor_dict(i, sensor_spp))
             if emission is not None and np.any(emission[i] > 0):
                 props["emitter"] = mi.load_dict(
-                    {"type": "area", "radiance": _spectrum(emission[i], self.wavelengths, step=step)}
+                    {"type": "area", "radiance": spectrum_dict(emission[i], self.wavelengths, step=step)}
                 )
             nv = 3 if tri[i] else 4
             mesh = mi.Mesh(self.facet_keys[i], nv, nv - 2, props)
@@ -350,7 +352,7 @@ class MitsubaReference:
                 # the specfilm measures ∫ W(λ) E(λ) dλ: W as a step function of height W_l / Δλ_l on each
                 # node's bin gives Σ_l W_l E_l (E is a step function too: every spectrum is given as one)
                 band = np.maximum(self.weights[i, k], 0.0)  # tabulated data can hold -1e-19
-                film[f"band{k:02d}"] = _spectrum(band, self.wavelengths, step=True)
+                film[f"band{k:02d}"] = spectrum_dict(band, self.wavelengths, step=True)
         else:
             film = {"type": "hdrfilm", "width": 1, "height": 1, "rfilter": {"type": "box"}, "pixel_format": "luminance"}
         return {"type": "irradiancemeter", "film": film, "sampler": {"type": self.sampler_type, "sample_count": spp}}
