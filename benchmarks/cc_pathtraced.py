@@ -28,9 +28,10 @@ times an exposure (99th percentile → 0.9); the sidecar holds the spectra actua
 the relative RMS difference between the library's final-gather image of the same spectra and Mitsuba's over the
 covered pixels (noise included).
 
-Run: ``python -m benchmarks.cc_pathtraced --count 200 --size 32`` (about 1 s an image on a 2-core CPU at 32 × 32 and
-64 spp). Writes ``out/cc-pathtraced-{size}`` (not committed); ``benchmarks.colour_constancy --study --pathtraced``
-renders it when missing and scores every method on it.
+Run: ``python -m benchmarks.cc_pathtraced --count 200 --size 32`` (about 0.5 s an image on a 2-core CPU at
+32 × 32 and 256 spp, part of it the generator's render of the samples that are dropped). Writes
+``out/cc-pathtraced-{size}`` (not committed); ``benchmarks.colour_constancy --study`` renders it when missing and
+scores every method on its first ``--pathtraced`` images.
 """
 
 from __future__ import annotations

@@ -183,28 +183,31 @@ def study(args: argparse.Namespace, out: Path) -> str:
         t = time.perf_counter()
         root = render_test_set(Path(args.data).parent / f"cc-pathtraced-{args.size}", args.pathtraced, args.size,
                                progress=False)
-        sets["path-traced (Mitsuba)"] = GeneratedDataset(root, None, None, geometry=True)
+        first = json.loads((root / "dataset.json").read_text())["indices"][: args.pathtraced]  # a folder may hold more
+        sets["path-traced (Mitsuba)"] = GeneratedDataset(root, None, first, geometry=True)
         seconds["path-traced set"] = time.perf_counter() - t
-    t = time.perf_counter()
-    _generate(args)
-    seconds["data"] = time.perf_counter() - t
-    for seed in range(args.seeds):
-        cfg = TrainConfig(data=args.data, out=f"{args.data}/study-seed{seed}", count=args.count, seed=seed,
-                          size=(args.size, args.size), epochs=args.epochs, physics_epochs=args.physics_epochs,
-                          width=args.width, progress=False, overwrite=True)
+    try:
         t = time.perf_counter()
-        res = run_train_cc(cfg)
-        seconds[f"train seed {seed}"] = time.perf_counter() - t
-        seconds.update({f"{k} seed {seed}": v for k, v in res["seconds"].items() if k != "data"})
-        _, test_idx = split_indices(args.count, cfg.test_fraction)
-        held_out = GeneratedDataset(args.data, None, test_idx[: args.max_test], geometry=True)
-        sets = {"held-out (generator)": held_out, **sets}
-        for name, test in sets.items():
+        _generate(args)
+        seconds["data"] = time.perf_counter() - t
+        for seed in range(args.seeds):
+            cfg = TrainConfig(data=args.data, out=f"{args.data}/study-seed{seed}", count=args.count, seed=seed,
+                              size=(args.size, args.size), epochs=args.epochs, physics_epochs=args.physics_epochs,
+                              width=args.width, progress=False, overwrite=True)
             t = time.perf_counter()
-            _score(test, cfg.out_dir, seed, errors.setdefault(name, {}), pool)
-            seconds[f"score {name} seed {seed}"] = time.perf_counter() - t
-    if ex is not None:
-        ex.shutdown()
+            res = run_train_cc(cfg)
+            seconds[f"train seed {seed}"] = time.perf_counter() - t
+            seconds.update({f"{k} seed {seed}": v for k, v in res["seconds"].items() if k != "data"})
+            _, test_idx = split_indices(args.count, cfg.test_fraction)
+            held_out = GeneratedDataset(args.data, None, test_idx[: args.max_test], geometry=True)
+            sets = {"held-out (generator)": held_out, **sets}
+            for name, test in sets.items():
+                t = time.perf_counter()
+                _score(test, cfg.out_dir, seed, errors.setdefault(name, {}), pool)
+                seconds[f"score {name} seed {seed}"] = time.perf_counter() - t
+    finally:
+        if ex is not None:
+            ex.shutdown()
     seconds["total"] = time.perf_counter() - t_all
     return _report(args, errors, seconds, {k: len(v) for k, v in sets.items()}, out)
 
@@ -256,7 +259,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--floors", action="store_true")
     p.add_argument("--study", action="store_true")
     p.add_argument("--data", default="out/cc-study")
-    p.add_argument("--count", type=int, default=150)
+    p.add_argument("--count", type=int, default=5000)
     p.add_argument("--size", type=int, default=32)
     p.add_argument("--seeds", type=int, default=3)
     p.add_argument("--epochs", type=int, default=30)
