@@ -4,7 +4,7 @@ Given an image, the scene's geometry (form factors ``F``, light factor ``g``, pi
 material index of every facet; the ``_geometry.npz`` of the generator, or any RGB-D / synthetic scene reduced to
 these) and a starting estimate (a network's), :func:`refine_illuminant` finds the illuminant spectrum ``S``
 (any-illuminant basis, :func:`~torch_interreflect.spectral.illuminant_basis`) and one reflectance per material
-(reflectance PCA basis, clipped to [0.01, 0.95]) that best re-render the image:
+(reflectance PCA basis of ``K_r`` components, clipped to [0.01, 0.95]) that best re-render the image:
 
 ``min  ‖s · P(S, R) − I‖² / ‖I‖²  +  λ ‖c − c₀‖² / K  +  μ ‖a‖² / (M K_r)``,
 
@@ -119,7 +119,7 @@ def refine_illuminant(
     *,
     bounces: int | None = None,
     prior_weight: float = 1e-6,
-    reflectance_components: int = 6,
+    reflectance_components: int = 30,
     steps: int = 150,
     tol: float = 1e-6,
 ) -> RefinedIlluminant:
@@ -133,7 +133,9 @@ def refine_illuminant(
         init_rgb: Starting estimate. Shape ``[3]``.
         bounces: ``None`` (infinite), ``1`` (direct only) or ``2``.
         prior_weight: ``λ``, the pull towards the starting code.
-        reflectance_components: ``K_r``.
+        reflectance_components: ``K_r`` (at most the grid's length). 30 on the 31-wavelength grid: started from
+            the true illuminant, the refinement's median error on the study's path-traced images was 3.76° with 6,
+            2.45° with 12 and 2.28° with 20 (40 images); from the network, 3.77° / 3.22° / 2.79° / 2.40° (30).
         steps: L-BFGS iterations.
         tol: Relative residual of the solves.
 
@@ -150,7 +152,7 @@ def refine_illuminant(
         basis = spectral.illuminant_basis(wl, config["camera"])
     basis = tuple(t.detach().to(torch.float64) for t in basis)
     data = spectral.reflectance_data(wl)
-    r_mean, r_comps = spectral.fit_reflectance_basis(data, reflectance_components)
+    r_mean, r_comps = spectral.fit_reflectance_basis(data, min(reflectance_components, *data.shape))
     r_sigma = ((data - r_mean) @ r_comps.T).std(0)
     cov, obs, material = _problem(image, geometry)
     obs = obs / obs.norm().clamp_min(1e-300)
