@@ -49,10 +49,10 @@ from tqdm import tqdm
 
 from benchmarks._common import mitsuba as mr
 from torch_interreflect import spectral
-from torch_interreflect.camera import View, gather_operator, gathered_image, mix_direct, source_irradiance
-from torch_interreflect.geometry import Scene
+from torch_interreflect.camera import gathered_image, source_irradiance
 from torch_interreflect.training import GeneratorConfig, Sample, load_geometry, render_sample
 from torch_interreflect.training.config import CONFIG_FILE
+from torch_interreflect.training.refine import gathered_model
 from torch_interreflect.training.sample import load_resources
 from torch_interreflect.training.storage import atomic_write, json_bytes, write_sample
 
@@ -123,9 +123,7 @@ def mitsuba_image(geometry: dict, reflectance: torch.Tensor, spd: torch.Tensor, 
     corners = sh["corners"].double().numpy()
     tri = sh["is_triangle"].numpy().astype(bool)
     material = geometry["material"].numpy()
-    lo, hi = corners.reshape(-1, 3).min(0), corners.reshape(-1, 3).max(0)
-    centre = 0.5 * (lo + hi)
-    scale = 100.0 / float(np.abs(corners.reshape(-1, 3) - centre).max())
+    centre, scale = mr.auto_frame(corners)
     p = (corners - centre) * scale
     refl = reflectance.double().numpy()
     s = spd.double().numpy()
@@ -135,12 +133,11 @@ def mitsuba_image(geometry: dict, reflectance: torch.Tensor, spd: torch.Tensor, 
                        "irradiance": mr.spectrum_dict((1.0 - a) * s, wl, step=True)},
                "sky": {"type": "constant", "radiance": mr.spectrum_dict(a * s / math.pi, wl, step=True)}}
     for m in np.unique(material):
-        verts, faces = [], []
+        verts, faces, base = [], [], 0
         for f in np.flatnonzero(material == m):
-            base = sum(len(v) for v in verts)
-            nv = 3 if tri[f] else 4
-            verts.append(p[f, :nv])
+            verts.append(p[f, : 3 if tri[f] else 4])
             faces += [[base, base + 1, base + 2]] + ([] if tri[f] else [[base, base + 2, base + 3]])
+            base += len(verts[-1])
         v = np.concatenate(verts).astype(np.float32)
         props = mi.Properties()
         props["bsdf"] = mi.load_dict({"type": "diffuse",
@@ -166,17 +163,12 @@ def mitsuba_image(geometry: dict, reflectance: torch.Tensor, spd: torch.Tensor, 
 
 
 def library_image(geometry: dict, reflectance: torch.Tensor, spd: torch.Tensor, camera) -> np.ndarray:
-    """The library's final-gather image ``[H, W, 3]`` of the same geometry and spectra (the generator's model)."""
-    sh = geometry["shading"]
-    scene = Scene.from_parts(sh["corners"], sh["is_triangle"], geometry["material"], None)
-    v = sh["view"]
-    view = View(v["eye"], v["target"], v["up"], fov_deg=v["fov_deg"], height=v["height"], width=v["width"])
-    op = gather_operator(scene, view, sh["sun"], supersample=sh["supersample"], samples=sh["samples"],
-                         stride=sh["stride"], cache=False)
+    """The library's final-gather image ``[H, W, 3]`` of the same geometry and spectra (the generator's model,
+    rebuilt as :func:`~torch_interreflect.training.refine_illuminant` rebuilds it)."""
+    op, direct = gathered_model(geometry)
     r = reflectance.double()[geometry["material"]]
     E = source_irradiance(geometry["form_factors"], r, geometry["light_factor"][:, None] * spd[None].double())
-    img = gathered_image(op, r, E, spd.double(), camera, direct=mix_direct(op, sh["ambient_weight"], True))
-    return img.permute(1, 2, 0).numpy()
+    return gathered_image(op, r, E, spd.double(), camera, direct=direct).permute(1, 2, 0).numpy()
 
 
 # ------------------------------------------------------------------------------------------------ the set

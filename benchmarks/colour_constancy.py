@@ -116,15 +116,15 @@ def _refined_errors(path: Path, test: GeneratedDataset, starts: list[torch.Tenso
     workers)`` processes (one torch thread each; ``None``: here)."""
     n = len(test)
     parts = 1 if pool is None else pool[1]
-    chunks = [list(range(k, n, parts)) for k in range(parts)]
+    chunks = [c for c in (list(range(k, n, parts)) for k in range(parts)) if c]
     jobs = [(str(path), str(test.root), [test.indices[i] for i in c], [starts[i].tolist() for i in c], bounces)
-            for c in chunks if c]
+            for c in chunks]
     if pool is None:
         results = [_refine_images(*j) for j in jobs]
     else:
         results = [f.result() for f in [pool[0].submit(_refine_images, *j) for j in jobs]]
     errs = np.empty(n)
-    for c, r in zip([c for c in chunks if c], results, strict=True):
+    for c, r in zip(chunks, results, strict=True):
         errs[c] = r
     return errs
 
@@ -144,12 +144,11 @@ def _score(test: GeneratedDataset, out_dir: Path, seed: int, errors: dict[str, l
         errors.setdefault(label, []).append(e)
     variants = [("physics", None, "physics + geometry refinement, ∞ bounces"),
                 ("fc4_inf", None, "FC4 ∞ + geometry refinement, ∞ bounces")]
-    if seed == 0:
-        variants += [("physics", 2, "physics + geometry refinement, 2 bounces (seed 0)"),
-                     ("physics", 1, "physics + geometry refinement, direct only (seed 0)")]
-    if seed == 0:  # the model's own floor: the refinement started at the answer
+    if seed == 0:  # ablations, and the model's own floor: the refinement started at the answer
         starts["truth"] = [it["illuminant"] for it in test]
-        variants.append(("truth", None, "geometry refinement from the true illuminant (seed 0)"))
+        variants += [("physics", 2, "physics + geometry refinement, 2 bounces (seed 0)"),
+                     ("physics", 1, "physics + geometry refinement, direct only (seed 0)"),
+                     ("truth", None, "geometry refinement from the true illuminant (seed 0)")]
     for key, b, label in variants:
         path = out_dir / f"{'physics' if key == 'truth' else key}.pt"
         errors.setdefault(label, []).append(_refined_errors(path, test, starts[key], b, pool))
@@ -163,12 +162,10 @@ def _generate(args: argparse.Namespace) -> None:
     """The seed-0 data of the study, generated in ``args.workers`` shards at once (what ``run_train_cc`` would
     otherwise generate in one process)."""
     gen = GeneratorConfig(count=args.count, seed=0, size=(args.size, args.size))
-    if args.workers <= 1:
-        return _generate_shard(args.data, gen, (0, 1))
-    with ProcessPoolExecutor(args.workers, mp_context=multiprocessing.get_context("spawn")) as ex:
-        for f in [ex.submit(_generate_shard, args.data, gen, (k, args.workers)) for k in range(args.workers)]:
+    n = max(1, args.workers)
+    with ProcessPoolExecutor(n, mp_context=multiprocessing.get_context("spawn")) as ex:
+        for f in [ex.submit(_generate_shard, args.data, gen, (k, n)) for k in range(n)]:
             f.result()
-    return None
 
 
 def study(args: argparse.Namespace, out: Path) -> str:

@@ -74,6 +74,7 @@ __all__ = [
     "MitsubaReference",
     "RenderResult",
     "Sky",
+    "auto_frame",
     "available",
     "load_mitsuba",
     "load_reference",
@@ -203,6 +204,14 @@ def spectrum_dict(value: Any, wavelengths: np.ndarray | None, *, step: bool = Fa
     }
 
 
+def auto_frame(corners: np.ndarray, origin: Sequence[float] | None = None) -> tuple[np.ndarray, float]:
+    """``(centre, factor)`` of ``scale="auto"``: Mitsuba gets ``(p − centre) · factor``, the bounding box's centre
+    (or ``origin``) at its origin and the largest coordinate at 100 (see the module docstring)."""
+    pts = np.asarray(corners, np.float64).reshape(-1, 3)
+    centre = 0.5 * (pts.min(0) + pts.max(0)) if origin is None else np.asarray(origin, np.float64)
+    return centre, 100.0 / max(float(np.abs(pts - centre).max()), 1e-300)
+
+
 def _bin_edges(wl: np.ndarray) -> np.ndarray:
     mid = 0.5 * (wl[1:] + wl[:-1])
     return np.concatenate([[wl[0] - (mid[0] - wl[0])], mid, [wl[-1] + (wl[-1] - mid[-1])]])
@@ -289,9 +298,7 @@ class MitsubaReference:
         self.reflectance = np.array(refl)
         # --- geometry to Mitsuba's frame
         if scale == "auto":
-            lo, hi = corners.reshape(-1, 3).min(0), corners.reshape(-1, 3).max(0)
-            centre = 0.5 * (lo + hi) if origin is None else np.asarray(origin, np.float64)
-            factor = 100.0 / max(float(np.abs(corners.reshape(-1, 3) - centre).max()), 1e-300)
+            centre, factor = auto_frame(corners, origin)
         else:
             centre, factor = np.zeros(3), float(scale)
         self.centre, self.scale = centre, factor

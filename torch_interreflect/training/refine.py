@@ -36,7 +36,7 @@ from ..camera.view import View
 from ..geometry.scene import Scene
 from ..solver.api import radiance, solve
 
-__all__ = ["RefinedIlluminant", "code_for_rgb", "refine_illuminant"]
+__all__ = ["RefinedIlluminant", "code_for_rgb", "gathered_model", "refine_illuminant"]
 
 
 @dataclasses.dataclass
@@ -88,7 +88,7 @@ def code_for_rgb(rgb: Tensor, basis: tuple[Tensor, Tensor, Tensor], camera: Came
     return code.detach()
 
 
-def _gathered_model(geometry: dict[str, Any]) -> tuple[Any, Tensor] | None:
+def gathered_model(geometry: dict[str, Any]) -> tuple[Any, Tensor] | None:
     """For a gathered sample (``geometry["shading"]``), its per-pixel model: the gather operator rebuilt from the
     facets and the view, and the direct term of its light mix ``[K]``; ``None`` for a flat one."""
     sh = geometry.get("shading")
@@ -156,7 +156,7 @@ def refine_illuminant(
     r_sigma = ((data - r_mean) @ r_comps.T).std(0)
     cov, obs, material = _problem(image, geometry)
     obs = obs / obs.norm().clamp_min(1e-300)
-    gathered = _gathered_model(geometry)  # the image's own per-pixel model when the sample was gathered
+    gathered = gathered_model(geometry)  # the image's own per-pixel model when the sample was gathered
     seen = geometry["coverage"]
     seen = ((seen.to_dense() if seen.layout != torch.strided else seen).sum(1) > 1e-9)
     ff, g = geometry["form_factors"], geometry["light_factor"].to(torch.float64)
