@@ -229,7 +229,11 @@ def render_test_set(out: str | Path, count: int = 200, size: int = 32, spp: int 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     cfg_path = out / CONFIG_FILE
-    done = json.loads(cfg_path.read_text()).get("indices", []) if cfg_path.is_file() else []
+    stored = json.loads(cfg_path.read_text()) if cfg_path.is_file() else {}
+    if stored and GeneratorConfig.from_json(stored["generator"]).size != (size, size):
+        have = GeneratorConfig.from_json(stored["generator"]).size
+        raise ValueError(f"{out} holds {have[0]}x{have[1]} images but size={size} was asked; use another folder")
+    done = stored.get("indices", [])
     config = testset_config(max(done, default=-1) + 1, size)
     library = spectral.illuminant_library(load_resources(config)["wl"])
     index = max(done, default=-1) + 1

@@ -139,3 +139,11 @@ def test_pathtraced_test_set_agrees_with_the_library(tmp_path: Path) -> None:
         assert abs(float(a.norm() / b.norm()) - 1.0) < 0.035
         white = cam(spd[None] / math.pi)[0]
         assert float(angular_error(white, torch.tensor(meta["illuminant"]["rgb_normalized"]))) < 1e-4
+
+
+def test_pathtraced_test_set_refuses_a_folder_of_another_size(tmp_path: Path) -> None:
+    from benchmarks import cc_pathtraced as pt
+
+    (tmp_path / "dataset.json").write_text(json.dumps({"generator": pt.testset_config(3, 16).to_json(), "indices": []}))
+    with pytest.raises(ValueError, match="holds 16x16 images but size=32"):
+        pt.render_test_set(tmp_path, 1, 32, progress=False)
