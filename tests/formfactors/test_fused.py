@@ -8,7 +8,7 @@ import torch
 
 import torch_interreflect as ti
 from tests.oracles import HOWELL_C16, reference_tolerance
-from torch_interreflect.formfactors import fused
+from torch_interreflect.formfactors import fused, fused_points
 from torch_interreflect.formfactors.rules import quadrature_rule
 
 F64 = torch.float64
@@ -131,6 +131,75 @@ def test_group_sums_on_device(device):
     torch.testing.assert_close(ref, cpu, rtol=1e-12, atol=1e-15)
 
 
+def _pair_set(seed=4):
+    """The facing pairs of a random scene, ``(dom, tgt, shift, clip)`` (clipped targets as the quadrature
+    classifies them; domains rotated at random)."""
+    from torch_interreflect.formfactors import pairs
+    from torch_interreflect.geometry._polygon import plane_eps
+
+    scene = random_scene(seed, n=40).to(F64)
+    eps = plane_eps(scene)
+    dom, tgt = pairs.order_pairs(scene.areas, *pairs.facing_pairs(scene, eps, ("dense", 8)))
+    cls = pairs.classify_pairs(scene, dom, tgt, 1e-6, None, eps)
+    assert int(cls.clip_t.sum()) > 5
+    shift = torch.randint(0, 4, dom.shape, generator=torch.Generator().manual_seed(seed))  # any rotation is valid
+    return scene, (dom, tgt, shift, cls.clip_t)
+
+
+def test_grouped_sums_equal_one_group_at_a_time():
+    """Several rules of very different sizes in one launch (runs of equal point counts) give, pair by pair, what
+    group_sums gives per rule (compiled and torch), and write nothing outside the selected pairs."""
+    scene, pairs = _pair_set()
+    args = (scene.corners, scene.normals, scene.centroids)
+    perm = torch.randperm(pairs[0].numel(), generator=torch.Generator().manual_seed(1))
+    cuts = [0, 3, 4, 60, 60, 150, perm.numel() - 7]  # an empty group, a group of one, a few large ones
+    kinds = [("edge", 6), ("plain", 2), ("vertex", 5), ("plain", 9), ("plain", 31), ("plain", 1)]
+    parts = [(quadrature_rule(k, n, F64, torch.device("cpu")), torch.sort(perm[a:b]).values)
+             for (k, n), a, b in zip(kinds, cuts[:-1], cuts[1:], strict=True)]
+    ref = torch.full((perm.numel(),), float("nan"), dtype=F64)
+    for rule, sel in parts:
+        fused.group_sums(*args, *pairs, rule, 1e-9, backend="torch", select=sel, out=ref)
+    for threads in (1, 2, 3):
+        with torch.inference_mode():
+            prev = torch.get_num_threads()
+            torch.set_num_threads(threads)
+            try:
+                out = torch.full_like(ref, float("nan"))
+                fused.grouped_sums(*args, pairs, parts, 1e-9, out)
+            finally:
+                torch.set_num_threads(prev)
+        assert torch.equal(out.isnan(), ref.isnan()) and int((~out.isnan()).sum()) == cuts[-1]
+        torch.testing.assert_close(out, ref, rtol=1e-12, atol=1e-15, equal_nan=True)
+
+
+@pytest.mark.parametrize("blocks", [1, 2, 7, 64, 5000])
+def test_rule_sums_cover_every_pair_once_for_any_block_count(blocks):
+    """The compiled loop's runs of equal point counts (more or fewer runs than pairs) write each selected pair."""
+    from torch_interreflect.formfactors import compiled
+
+    kern = compiled.loops()
+    if kern is None:
+        pytest.skip("needs numba")
+    scene, (iu, ju, shift, clip) = _pair_set(5)
+    rules = [quadrature_rule("plain", n, F64, torch.device("cpu")) for n in (1, 7, 3)]
+    sel = torch.arange(0, iu.numel(), 3)
+    bounds = torch.tensor([0, 10, 11, sel.numel()])
+    size = torch.tensor([r[0].numel() for r in rules])
+    table = torch.zeros(3, 3, int(size.max()), dtype=F64)
+    for g, r in enumerate(rules):
+        for k in range(3):
+            table[k, g, : r[k].numel()] = r[k]
+    out = np.full(iu.numel(), np.nan)
+    kern.rule_sums(*(t.numpy() for t in (scene.corners, scene.normals, scene.centroids, iu, ju, shift, clip, sel,
+                                         bounds, table[0], table[1], table[2], size)), 1e-9, blocks, out)
+    assert np.isnan(out).sum() == iu.numel() - sel.numel() and not np.isnan(out[sel.numpy()]).any()
+    for g, r in enumerate(rules):
+        part = sel[bounds[g] : bounds[g + 1]]
+        want = fused.group_sums(scene.corners, scene.normals, scene.centroids, iu, ju, shift, clip, r, 1e-9,
+                                backend="torch", select=part)
+        torch.testing.assert_close(torch.from_numpy(out[part.numpy()]), want, rtol=1e-12, atol=1e-15)
+
+
 def test_backend_is_checked():
     with pytest.raises(ValueError, match="backend"):
         ti.form_factors(ti.scenes.closed_box(divisions=1), backend="numba")
@@ -184,8 +253,8 @@ def test_point_sums_match_the_torch_contour_formula(dtype):
     which = torch.randint(0, 40, (5000,), generator=g)
     plane = (poly[:, 0], torch.nn.functional.normalize(torch.randn(40, 3, generator=g, dtype=torch.float64), dim=-1))
     args = (x.to(dtype), n.to(dtype), rows, poly.to(dtype), which, tuple(t.to(dtype) for t in plane))
-    f, ahead = fused.point_sums(*args, backend="fused")
-    ref, ref_ahead = fused.point_sums(*args, backend="torch", chunk=777)
+    f, ahead = fused_points.point_sums(*args, backend="fused")
+    ref, ref_ahead = fused_points.point_sums(*args, backend="torch", chunk=777)
     assert f.dtype == dtype and f.shape == (5000,)
     tol = 1e-15 if dtype == torch.float64 else 2e-7
     assert float((f - ref).abs().max()) <= tol * float(ref.abs().max())
@@ -207,8 +276,8 @@ def test_point_polygon_factors_and_their_adjoint_match_autograd(dtype):
     poly[::5, 3] = poly[::5, 2]  # triangles: a repeated corner
     inputs = [t.to(dtype).requires_grad_(True) for t in (x, n, poly)]
     w = torch.rand(P, dtype=torch.float64, generator=g).to(dtype)
-    a = fused.point_polygon_factors(*inputs)
-    b = fused.point_polygon_factors(*inputs, backend="torch")
+    a = fused_points.point_polygon_factors(*inputs)
+    b = fused_points.point_polygon_factors(*inputs, backend="torch")
     assert a.dtype == dtype and a.shape == (P,)
     tol = 1e-15 if dtype == torch.float64 else 2e-7
     assert float((a - b).abs().max()) <= tol * float(b.abs().max())
@@ -219,4 +288,4 @@ def test_point_polygon_factors_and_their_adjoint_match_autograd(dtype):
         assert float((u - v).abs().max()) <= (2e-15 if dtype == torch.float64 else 1e-5) * float(v.abs().max())
     if dtype == torch.float64:
         quads = [t[1:5].detach().clone().requires_grad_(True) for t in (x, n, poly)]  # quads only
-        assert torch.autograd.gradcheck(lambda *t: fused.point_polygon_factors(*t), quads)
+        assert torch.autograd.gradcheck(lambda *t: fused_points.point_polygon_factors(*t), quads)

@@ -41,8 +41,7 @@ def test_compiled_pair_stages_equal_the_torch_reference(monkeypatch, name):
 
     def stages():
         iu, ju = pairs.facing_pairs(sc, eps, ("dense", 8))
-        swap = sc.areas[iu] > sc.areas[ju]
-        dom, tgt = torch.where(swap, ju, iu), torch.where(swap, iu, ju)
+        dom, tgt = pairs.order_pairs(sc.areas, iu, ju)
         cls = pairs.classify_pairs(sc, dom, tgt, 1e-6, None, eps)
         groups, clipped = pairs.rule_groups(cls)
         need = visibility.blocker_candidates(sc, dom, tgt, eps)
@@ -52,6 +51,8 @@ def test_compiled_pair_stages_equal_the_torch_reference(monkeypatch, name):
     got, ref = stages(), _torch_reference(monkeypatch, stages)
     for a, b in zip(got[:2], ref[:2], strict=True):
         assert torch.equal(a, b)
+    assert torch.equal(torch.stack(pairs.order_pairs(sc.areas, got[0], got[1])),
+                       torch.stack(_torch_reference(monkeypatch, lambda: pairs.order_pairs(sc.areas, ref[0], ref[1]))))
     for field in ("order", "has_edge", "has_vertex", "shift", "clip_t", "clip_d"):
         assert torch.equal(getattr(got[2], field), getattr(ref[2], field)), field
     torch.testing.assert_close(got[2].rho, ref[2].rho, rtol=4e-16, atol=0)

@@ -44,7 +44,7 @@ from torch import Tensor
 from torch.utils.checkpoint import checkpoint
 
 from ..errors import GradientWarning, ShapeError
-from ..formfactors.fused import point_polygon_factors
+from ..formfactors.fused_points import point_polygon_factors
 from ..formfactors.visibility import blocker_candidates
 from ..formfactors.visibility_grad import boundary_values, interior_values, shadow_spans
 from ..geometry._polygon import bilinear, clip_polygons, plane_eps, quad_coordinates, ray_plane_points

@@ -1,7 +1,7 @@
 """Point-to-facet form factors with occlusion: ``F(x → j) V(x, j)`` from points on facets of a scene.
 
 Lambert's contour formula (the facet clipped to the point's tangent plane, in the compiled loop of
-:func:`~torch_interreflect.formfactors.fused.point_sums`) times a kernel-weighted visible fraction from jittered
+:func:`~torch_interreflect.formfactors.fused_points.point_sums`) times a kernel-weighted visible fraction from jittered
 stratified Embree rays, cast only for facet pairs a third facet could block. Used per pixel by :mod:`.gather`.
 """
 
@@ -15,7 +15,7 @@ from torch import Tensor
 
 from .._sparse import sparse_matrix
 from ..errors import ShapeError
-from ..formfactors.fused import point_sums
+from ..formfactors.fused_points import point_sums
 from ..formfactors.visibility import blocker_candidates
 from ..geometry._polygon import bilinear, clip_polygons, facing_others, plane_eps
 from ..geometry.raycast import RayCaster

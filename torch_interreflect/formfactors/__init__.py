@@ -3,7 +3,8 @@
 - :mod:`.operator`: :class:`FormFactors` (dense or CSR) and the :class:`FormFactorOperator` protocol.
 - :mod:`.quadrature`: :func:`form_factors` (Lambert's contour formula, adaptive Gauss quadrature).
 - :mod:`.pairs`: culling and classification of facet pairs; :mod:`.fused`: the quadrature's compiled loops and
-  their adjoints; :mod:`.compiled`: loading and launching the numba loops (``_numba_*`` modules).
+  their adjoints; :mod:`.fused_points`: the compiled point-to-polygon factors of the final gather;
+  :mod:`.compiled`: loading and launching the numba loops (``_numba_*`` modules).
 - :mod:`.contour`: :func:`point_polygon_factor`; :mod:`.rules`: quadrature rules and orders.
 - :mod:`.visibility`: occlusion by Embree rays (jittered per-point samples); :mod:`.hemisphere`: the hemisphere
   fractions of the sky; :mod:`.sampling`: their low-discrepancy samples; :mod:`.montecarlo`: the paper's estimator.

@@ -127,37 +127,86 @@ def _quad_sum(dom, n0, n1, n2, poly, count, u, v, w, vis, vrow):
 _BLOCK = 64
 
 
-@njit(cache=True, parallel=True)
-def pair_sums(corners, normals, cent, dom, tgt, shift, clip, u, v, w, eps, vis, vrow, out):
-    """``out[p] = A_dom F_dom,tgt`` (before clamping) for pairs whose domain is a whole facet.
+@njit(cache=True, inline="always")
+def _pair_sum(corners, normals, cent, i, j, sh, cut, u, v, w, eps, vis, r, d, poly, dist):
+    """``A_i F_ij`` by the rule ``(u, v, w)`` over facet ``i`` (corners rotated by ``sh``), the target ``j``
+    clipped at ``i``'s plane when ``cut``; ``r``: row of ``vis`` (``-1``: visible); ``d, poly, dist``: scratch."""
+    for k in range(4):
+        kk = (k + sh) % 4
+        d[k, 0] = corners[i, kk, 0]
+        d[k, 1] = corners[i, kk, 1]
+        d[k, 2] = corners[i, kk, 2]
+    if cut:
+        count = _clip(corners[j], 4, cent[i, 0], cent[i, 1], cent[i, 2],
+                      normals[i, 0], normals[i, 1], normals[i, 2], eps, poly, dist)
+    else:
+        for k in range(4):
+            poly[k, 0] = corners[j, k, 0]
+            poly[k, 1] = corners[j, k, 1]
+            poly[k, 2] = corners[j, k, 2]
+        count = 4
+    return _quad_sum(d, normals[i, 0], normals[i, 1], normals[i, 2], poly, count, u, v, w, vis, r)
 
-    corners ``[F, 4, 3]``, normals/cent ``[F, 3]``; per pair: ``dom, tgt, shift`` (int64; the domain's corners
-    are rotated by ``shift``), ``clip`` (bool: clip the target at the domain's plane), ``vrow`` (row of ``vis``
-    holding the pair's per-point visible fractions, ``-1`` for none); rule ``u, v, w [Q]``.
+
+@njit(cache=True, parallel=True)
+def pair_sums(corners, normals, cent, dom, tgt, shift, clip, sel, u, v, w, eps, vis, vrow, out):
+    """``out[p] = A_dom F_dom,tgt`` (before clamping) for the pairs ``p = sel[n]`` (whole-facet domains).
+
+    corners ``[F, 4, 3]``, normals/cent ``[F, 3]``; per pair ``p``: ``dom, tgt, shift`` (int64; the domain's
+    corners are rotated by ``shift``), ``clip`` (bool: clip the target at the domain's plane); per selected pair
+    ``n``: ``vrow`` (row of ``vis`` holding its per-point visible fractions, ``-1`` for none; an empty ``vrow``:
+    none for every pair); rule ``u, v, w [Q]``.
+    The pairs are read where they are (no gathered copies); ``out`` is written at ``sel`` only.
     """
-    P = dom.shape[0]
-    for b in prange((P + _BLOCK - 1) // _BLOCK):
+    N = sel.shape[0]
+    for b in prange((N + _BLOCK - 1) // _BLOCK):
         d = np.empty((4, 3))
         poly = np.empty((_KMAX, 3))
         dist = np.empty(8)
-        for p in range(b * _BLOCK, min(P, (b + 1) * _BLOCK)):
-            i = dom[p]
-            j = tgt[p]
-            for k in range(4):
-                kk = (k + shift[p]) % 4
-                d[k, 0] = corners[i, kk, 0]
-                d[k, 1] = corners[i, kk, 1]
-                d[k, 2] = corners[i, kk, 2]
-            if clip[p]:
-                count = _clip(corners[j], 4, cent[i, 0], cent[i, 1], cent[i, 2],
-                              normals[i, 0], normals[i, 1], normals[i, 2], eps, poly, dist)
-            else:
-                for k in range(4):
-                    poly[k, 0] = corners[j, k, 0]
-                    poly[k, 1] = corners[j, k, 1]
-                    poly[k, 2] = corners[j, k, 2]
-                count = 4
-            out[p] = _quad_sum(d, normals[i, 0], normals[i, 1], normals[i, 2], poly, count, u, v, w, vis, vrow[p])
+        for n in range(b * _BLOCK, min(N, (b + 1) * _BLOCK)):
+            p = sel[n]
+            r = vrow[n] if vrow.shape[0] else -1
+            out[p] = _pair_sum(corners, normals, cent, dom[p], tgt[p], shift[p], clip[p], u, v, w, eps, vis, r, d,
+                               poly, dist)
+
+
+@njit(cache=True)
+def _pair_at(cum, bounds, size, c):
+    """The first pair (index into the concatenated groups) whose cumulative point count reaches ``c``."""
+    g = 0
+    while g + 1 < cum.shape[0] - 1 and cum[g + 1] <= c:
+        g += 1
+    return min(bounds[g] + (c - cum[g] + size[g] - 1) // size[g], bounds[g + 1])
+
+
+@njit(cache=True, parallel=True)
+def rule_sums(corners, normals, cent, dom, tgt, shift, clip, sel, bounds, ru, rv, rw, size, eps, blocks, out):
+    """:func:`pair_sums` for several rules in one launch, all points visible: the pairs ``sel[bounds[g] :
+    bounds[g + 1]]`` get the rule ``(ru[g], rv[g], rw[g])[:size[g]]`` (a table ``[G, Qmax]``).
+
+    The work is cut into ``blocks`` runs of about equal point counts (not of equal pair counts), so the threads'
+    shares balance although the rules' sizes differ by 100×.
+    """
+    G = size.shape[0]
+    cum = np.zeros(G + 1, dtype=np.int64)
+    for g in range(G):
+        cum[g + 1] = cum[g] + (bounds[g + 1] - bounds[g]) * size[g]
+    total = cum[G]
+    vis = np.ones((1, 1))
+    for b in prange(blocks):
+        start = _pair_at(cum, bounds, size, total * b // blocks)
+        stop = _pair_at(cum, bounds, size, total * (b + 1) // blocks) if b + 1 < blocks else bounds[G]
+        d = np.empty((4, 3))
+        poly = np.empty((_KMAX, 3))
+        dist = np.empty(8)
+        g = 0
+        for n in range(start, stop):
+            while n >= bounds[g + 1]:
+                g += 1
+            q = size[g]
+            p = sel[n]
+            out[p] = _pair_sum(corners, normals, cent, dom[p], tgt[p], shift[p], clip[p], ru[g, :q], rv[g, :q],
+                               rw[g, :q], eps, vis, -1, d, poly, dist)
 
 
 @njit(cache=True, parallel=True)

@@ -15,46 +15,69 @@ from numba import njit, prange
 
 
 @njit(cache=True, inline="always")
-def _front(corners, normals, cent, i, j, eps):
-    """Some corner of facet ``j`` lies strictly in front of facet ``i``'s plane."""
-    off = normals[i, 0] * cent[i, 0] + normals[i, 1] * cent[i, 1] + normals[i, 2] * cent[i, 2]
+def _front(corners, normals, off, i, j, eps):
+    """Some corner of facet ``j`` lies strictly in front of facet ``i``'s plane (``n_i·x = off_i``)."""
     for k in range(4):
         d = (normals[i, 0] * corners[j, k, 0] + normals[i, 1] * corners[j, k, 1]
-             + normals[i, 2] * corners[j, k, 2]) - off
+             + normals[i, 2] * corners[j, k, 2]) - off[i]
         if d > eps:
             return True
     return False
 
 
 @njit(cache=True)
-def _facing_row(corners, normals, cent, eps, i, iu, ju, m):
-    """Pairs ``(i, j > i)`` of mutually facing facets: counted, and written from ``m`` when ``iu`` is not empty."""
+def _facing_row(corners, normals, off, eps, i, mask):
+    """Mark ``mask[i, j]`` for the facets ``j > i`` facing ``i`` (each partly in front of the other); the count."""
     F = corners.shape[0]
     c = 0
     for j in range(i + 1, F):
-        if _front(corners, normals, cent, i, j, eps) and _front(corners, normals, cent, j, i, eps):
-            if iu.shape[0]:
-                iu[m + c] = i
-                ju[m + c] = j
+        m = _front(corners, normals, off, i, j, eps) and _front(corners, normals, off, j, i, eps)
+        mask[i, j] = m
+        if m:
             c += 1
     return c
 
 
 @njit(cache=True, parallel=True)
-def facing_pairs(corners, normals, cent, eps, start, iu, ju, counts):
-    """Pairs ``i < j`` of facets each partly in front of the other: with empty ``iu``/``ju``, ``counts[i]`` of row
-    ``i``; else the pairs of row ``i`` written from ``start[i]``, ``j`` ascending.
+def facing_mask(corners, normals, cent, eps, mask, counts):
+    """Pairs ``i < j`` of facets each partly in front of the other: ``mask[i, j]`` (the upper triangle of the
+    ``[F, F]`` bool ``mask`` is written) and ``counts[i]``, the pairs of row ``i``.
 
     Rows are taken in pairs ``(r, F − 1 − r)`` so every thread gets the same share of the triangle.
     """
     F = corners.shape[0]
+    off = np.empty(F)
+    for i in range(F):
+        off[i] = normals[i, 0] * cent[i, 0] + normals[i, 1] * cent[i, 1] + normals[i, 2] * cent[i, 2]
     half = (F + 1) // 2
     for r in prange(half):
         lo = np.int64(r)
         hi = np.int64(F - 1 - r)
-        counts[lo] = _facing_row(corners, normals, cent, eps, lo, iu, ju, start[lo])
+        counts[lo] = _facing_row(corners, normals, off, eps, lo, mask)
         if hi != lo:
-            counts[hi] = _facing_row(corners, normals, cent, eps, hi, iu, ju, start[hi])
+            counts[hi] = _facing_row(corners, normals, off, eps, hi, mask)
+
+
+@njit(cache=True)
+def _mask_row(mask, i, m, iu, ju):
+    for j in range(i + 1, mask.shape[0]):
+        if mask[i, j]:
+            iu[m] = i
+            ju[m] = j
+            m += 1
+
+
+@njit(cache=True, parallel=True)
+def mask_pairs(mask, start, iu, ju):
+    """The pairs of :func:`facing_mask`: row ``i``'s written from ``start[i]``, ``j`` ascending."""
+    F = mask.shape[0]
+    half = (F + 1) // 2
+    for r in prange(half):
+        lo = np.int64(r)
+        hi = np.int64(F - 1 - r)
+        _mask_row(mask, lo, start[lo], iu, ju)
+        if hi != lo:
+            _mask_row(mask, hi, start[hi], iu, ju)
 
 
 @njit(cache=True, inline="always")
@@ -77,16 +100,18 @@ def _behind(corners, cent, normals, j, i, eps):
 
 
 @njit(cache=True, parallel=True)
-def classify(corners, normals, cent, diam, radius, dom, tgt, eps, rho, has_edge, has_vertex, shift, clip_t, clip_d):
-    """Per pair ``(dom, tgt)``: ``rho`` (centroid distance / larger diameter), shared edge / shared vertex and the
-    rotation of the domain's corners that puts it first, and whether the target (domain) crosses the domain's
-    (target's) plane. See :func:`.pairs.classify_pairs`."""
+def classify(corners, normals, cent, diam, radius, dom, tgt, eps, digits, rho, order, has_edge, has_vertex, shift,
+             clip_t, clip_d):
+    """Per pair ``(dom, tgt)``: ``rho`` (centroid distance / larger diameter) and the Gauss order for ``digits``
+    (:func:`gauss_order`), shared edge / shared vertex and the rotation of the domain's corners that puts it first,
+    and whether the target (domain) crosses the domain's (target's) plane. See :func:`.pairs.classify_pairs`."""
     P = dom.shape[0]
     for p in prange(P):
         a = dom[p]
         b = tgt[p]
         dist = _dist(cent[a, 0], cent[a, 1], cent[a, 2], cent[b, 0], cent[b, 1], cent[b, 2])
         rho[p] = dist / max(diam[a], diam[b])
+        order[p] = gauss_order(rho[p], digits)
         e = False
         vtx = False
         sh = 0
@@ -169,27 +194,57 @@ def blockers(corners, cent, lo, hi, radius, pn, po, plo, phi, g_centre, g_radius
         need[p] = found
 
 
+@njit(cache=True, inline="always")
+def gauss_order(rho, digits):
+    """The Gauss order of :func:`.rules.order_for` for one pair's ``rho`` (same formula)."""
+    n = math.ceil(digits / (2.0 * math.log10(1.0 + 2.0 * max(rho, 0.05))))
+    return min(max(n, 1), 40)
+
+
 @njit(cache=True, parallel=True)
-def gauss_orders(rho, digits, order):
-    """``order[p]`` = the Gauss order of :func:`.rules.order_for` for ``rho[p]`` (same formula, per pair)."""
-    for p in prange(rho.shape[0]):
-        n = math.ceil(digits / (2.0 * math.log10(1.0 + 2.0 * max(rho[p], 0.05))))
-        order[p] = min(max(n, 1), 40)
+def order_pairs(areas, iu, ju, dom, tgt):
+    """Each pair ``(iu, ju)`` as ``(dom, tgt)`` with the smaller facet (the integration domain) first; ties keep
+    ``iu`` first."""
+    for p in prange(iu.shape[0]):
+        if areas[iu[p]] > areas[ju[p]]:
+            dom[p] = ju[p]
+            tgt[p] = iu[p]
+        else:
+            dom[p] = iu[p]
+            tgt[p] = ju[p]
 
 
-@njit(cache=True)
-def stable_buckets(key, n_keys, idx, counts):
-    """Counting sort: ``idx`` lists the positions of ``key`` (ints in ``[0, n_keys)``) by key, ascending within a
-    key; ``counts[k]`` is the size of bucket ``k``."""
-    for p in range(key.shape[0]):
-        counts[key[p]] += 1
-    start = np.zeros(n_keys, dtype=np.int64)
-    for k in range(1, n_keys):
-        start[k] = start[k - 1] + counts[k - 1]
-    for p in range(key.shape[0]):
-        k = key[p]
-        idx[start[k]] = p
-        start[k] += 1
+#: pairs per block of the parallel counting sort
+_SORT_BLOCK = 1 << 16
+
+
+@njit(cache=True, parallel=True)
+def rule_buckets(has_edge, has_vertex, order, clip_d, idx, counts):
+    """The pairs by rule key (0 edge-graded, 1 vertex-graded, ``1 + order`` plain, 64 clipped domain), ascending
+    within a key, in ``idx``; ``counts[k]`` is the size of bucket ``k`` (a parallel counting sort over blocks)."""
+    P = order.shape[0]
+    nb = (P + _SORT_BLOCK - 1) // _SORT_BLOCK
+    hist = np.zeros((nb + 1, 65), dtype=np.int64)
+    key = np.empty(P, dtype=np.int64)
+    for b in prange(nb):
+        for p in range(b * _SORT_BLOCK, min(P, (b + 1) * _SORT_BLOCK)):
+            k = 64 if clip_d[p] else 0 if has_edge[p] else 1 if has_vertex[p] else 1 + order[p]
+            key[p] = k
+            hist[b + 1, k] += 1
+    base = 0
+    for k in range(65):  # hist[b, k] becomes the start of block b's run of key k (hist[b + 1, k] its count)
+        first = base
+        for b in range(nb):
+            c = hist[b + 1, k]
+            hist[b, k] = base
+            base += c
+        counts[k] = base - first
+    for b in prange(nb):
+        start = hist[b].copy()
+        for p in range(b * _SORT_BLOCK, min(P, (b + 1) * _SORT_BLOCK)):
+            k = key[p]
+            idx[start[k]] = p
+            start[k] += 1
 
 
 #: pairs per block of :func:`pair_entries` (each block's kept pairs are counted, then written from its offset)
@@ -197,10 +252,9 @@ _ENTRY_BLOCK = 1 << 16
 
 
 @njit(cache=True, parallel=True)
-def pair_entries(areas, dom, tgt, value, rows, cols, vals):
-    """Both directions of the pairs with ``value > 0``: ``F_dom,tgt = value / A_dom`` first (in pair order), then
-    ``F_tgt,dom = value / A_tgt``; ``rows``, ``cols``, ``vals`` hold twice the kept pairs. Blocks of pairs are
-    counted, then filled, in parallel."""
+def pair_entries(areas, dom, tgt, value):
+    """``(rows, cols, vals)``: both directions of the pairs with ``value > 0``, ``F_dom,tgt = value / A_dom`` first
+    (in pair order), then ``F_tgt,dom = value / A_tgt``. Blocks of pairs are counted, then filled, in parallel."""
     P = dom.shape[0]
     nb = (P + _ENTRY_BLOCK - 1) // _ENTRY_BLOCK
     counts = np.zeros(nb + 1, dtype=np.int64)
@@ -213,6 +267,9 @@ def pair_entries(areas, dom, tgt, value, rows, cols, vals):
     for b in range(nb):
         counts[b + 1] += counts[b]
     m = counts[nb]
+    rows = np.empty(2 * m, dtype=np.int64)
+    cols = np.empty(2 * m, dtype=np.int64)
+    vals = np.empty(2 * m, dtype=value.dtype)
     for b in prange(nb):
         k = counts[b]
         for p in range(b * _ENTRY_BLOCK, min(P, (b + 1) * _ENTRY_BLOCK)):
@@ -226,3 +283,14 @@ def pair_entries(areas, dom, tgt, value, rows, cols, vals):
                 cols[m + k] = a
                 vals[m + k] = value[p] / areas[t]
                 k += 1
+    return rows, cols, vals
+
+
+@njit(cache=True, parallel=True)
+def scatter_dense(rows, cols, vals, mat):
+    """``mat[rows[n], cols[n]] = vals[n]`` (cast to ``mat``'s dtype); the ``(row, col)`` are distinct."""
+    N = rows.shape[0]
+    nb = (N + _ENTRY_BLOCK - 1) // _ENTRY_BLOCK
+    for b in prange(nb):
+        for n in range(b * _ENTRY_BLOCK, min(N, (b + 1) * _ENTRY_BLOCK)):
+            mat[rows[n], cols[n]] = vals[n]

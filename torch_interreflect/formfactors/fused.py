@@ -30,7 +30,7 @@ from ..geometry._polygon import bilinear, clip_polygons
 from .compiled import launch, loops
 from .contour import point_polygon_factor
 
-__all__ = ["Backend", "fan_sums", "fused_available", "group_sums", "point_polygon_factors", "point_sums",
+__all__ = ["Backend", "fan_sums", "first_order_only", "fused_available", "group_sums", "grouped_sums",
            "resolve_backend"]
 
 Backend = Literal["auto", "fused", "torch"]
@@ -88,7 +88,7 @@ def _visible_rows(
     return vis(x, dom[rows], tgt[rows]).to(torch.float64).contiguous(), vrow
 
 
-def _first_order_only() -> None:
+def first_order_only() -> None:
     """The compiled adjoints give first derivatives only: a backward that builds a graph (``create_graph=True``,
     for second derivatives or gradient penalties) would silently treat them as constants."""
     if torch.is_grad_enabled():
@@ -113,7 +113,7 @@ class _PolygonSums(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, gout):  # type: ignore[override]
-        _first_order_only()
+        first_order_only()
         domain, normal, target, count, u, v, w, vis, vrow = ctx.saved_tensors
         P = domain.shape[0]
         gd = torch.zeros(P, 4, 3, dtype=torch.float64)
@@ -137,13 +137,14 @@ class _PairSums(torch.autograd.Function):
         if dom.numel():
             clip = torch.zeros(dom.numel(), dtype=torch.bool)
             launch(loops().pair_sums, _np(corners.double()), _np(normals.double()), _np(cent.double()), _np(dom),
-                 _np(tgt), _np(shift), _np(clip), _np(u), _np(v), _np(w), 0.0, _np(vis), _np(vrow), out.numpy())
+                 _np(tgt), _np(shift), _np(clip), torch.arange(dom.numel()).numpy(), _np(u), _np(v), _np(w), 0.0,
+                 _np(vis), _np(vrow), out.numpy())
         ctx.save_for_backward(corners, normals, dom, tgt, shift, u, v, w, vis, vrow)
         return out.to(corners.dtype)
 
     @staticmethod
     def backward(ctx, gout):  # type: ignore[override]
-        _first_order_only()
+        first_order_only()
         corners, normals, dom, tgt, shift, u, v, w, vis, vrow = ctx.saved_tensors
         c = corners.detach().double()
         n = normals.detach().double()
@@ -194,6 +195,8 @@ def group_sums(
     backend: Backend = "auto",
     *,
     chunk_points: int = 1 << 18,
+    select: Tensor | None = None,
+    out: Tensor | None = None,
 ) -> Tensor:
     """``A_dom F_dom,tgt`` (not clamped) of pairs whose domain is a whole facet, by one rule.
 
@@ -211,27 +214,90 @@ def group_sums(
         vis: Visible fractions of points (a :class:`.visibility.PointVisibility`).
         backend: See the module doc.
         chunk_points: Quadrature points × polygon corners per chunk of the torch path.
+        select: Integrate only the pairs at these indices (int64 ``[N]``) of ``dom, tgt, shift, clip, need``; the
+            compiled loop reads them in place, with no gathered copies (default: all pairs).
+        out: Write the sums into ``out`` (float64 ``[P]``) at ``select`` and return it, rather than a new tensor.
 
     Returns:
-        ``Σ_q F(x_q → target) |J_q| w_q vis_q`` in m². Shape ``[P]``.
+        ``Σ_q F(x_q → target) |J_q| w_q vis_q`` in m². Shape ``[P]`` (``[N]`` with ``select`` and no ``out``).
     """
     u, v, w = rule
-    if _adjoint_wanted(backend, corners, normals, cent):
-        return _adjoint_group_sums(corners, normals, cent, dom, tgt, shift, clip, rule, eps, need, vis)
-    if not resolve_backend(backend, corners, normals, cent):
-        return _torch_group_sums(corners, normals, cent, dom, tgt, shift, clip, rule, eps, need, vis, chunk_points)
-    k = loops()
-    out = torch.empty(dom.numel(), dtype=torch.float64)
+    fused = not _adjoint_wanted(backend, corners, normals, cent) and resolve_backend(backend, corners, normals, cent)
+    if not fused:
+        if select is not None:
+            dom, tgt, shift, clip = dom[select], tgt[select], shift[select], clip[select]
+            need = need[select] if need is not None else None
+        if _adjoint_wanted(backend, corners, normals, cent):
+            sums = _adjoint_group_sums(corners, normals, cent, dom, tgt, shift, clip, rule, eps, need, vis)
+        else:
+            sums = _torch_group_sums(corners, normals, cent, dom, tgt, shift, clip, rule, eps, need, vis,
+                                     chunk_points)
+        if out is None:
+            return sums
+        if select is None:
+            out.copy_(sums)
+        else:
+            out[select] = sums
+        return out
+    sel = torch.arange(dom.numel()) if select is None else select
+    into = torch.empty(dom.numel(), dtype=torch.float64) if out is None else out
     per = max(64, _CHUNK_POINTS // u.numel())
-    c, n, m = _np(corners), _np(normals), _np(cent)
-    un, vn, wn = _np(u), _np(v), _np(w)
-    for s in range(0, dom.numel(), per):
-        d, t, sh = dom[s : s + per], tgt[s : s + per], shift[s : s + per]
-        nd = need[s : s + per] if need is not None else None
-        fr, vrow = _visible_rows(nd, vis, lambda r: _domains(corners, d[r], sh[r]), u, v, d, t)  # noqa: B023
-        launch(k.pair_sums, c, n, m, _np(d), _np(t), _np(sh), _np(clip[s : s + per]), un, vn, wn, float(eps),
-             _np(fr), _np(vrow), out[s : s + per].numpy())
-    return out
+    args = [_np(t) for t in (corners, normals, cent, dom, tgt, shift, clip)]
+    rule_np = [_np(t) for t in (u, v, w)]
+    no_rays = need is None or vis is None or not bool(need.any())
+    for s in range(0, sel.numel(), per):
+        p = sel[s : s + per]
+        if no_rays:  # an empty vrow: every pair fully visible (no [N] fill between the compiled launches)
+            fr, vrow = torch.ones(1, u.numel(), dtype=torch.float64), torch.empty(0, dtype=torch.int64)
+        else:
+            d, t, sh = dom[p], tgt[p], shift[p]
+            fr, vrow = _visible_rows(need[p], vis, lambda r: _domains(corners, d[r], sh[r]), u, v, d, t)  # noqa: B023
+        launch(loops().pair_sums, *args, _np(p), *rule_np, float(eps), _np(fr), _np(vrow), into.numpy())
+    return into if out is not None or select is None else into[select]
+
+
+def grouped_sums(
+    corners: Tensor,
+    normals: Tensor,
+    cent: Tensor,
+    pairs: tuple[Tensor, Tensor, Tensor, Tensor],
+    parts: list[tuple[tuple[Tensor, Tensor, Tensor], Tensor]],
+    eps: float,
+    out: Tensor,
+    backend: Backend = "auto",
+    chunk_points: int = 1 << 18,
+) -> None:
+    """:func:`group_sums` of several rule groups, every point visible, written into ``out``: on the CPU one
+    launch of the compiled loop for all groups, cut into runs of equal point counts (one launch per group costs
+    a thread wake-up each, and a small group cannot keep two threads busy); the other paths one group at a time.
+
+    Args:
+        corners, normals, cent, eps, backend, chunk_points: As in :func:`group_sums`.
+        pairs: ``(dom, tgt, shift, clip)``, each ``[P]``, as in :func:`group_sums`.
+        parts: ``(rule, select)`` per group: the rule ``(u, v, w)`` and the pair indices (int64) it integrates.
+        out: float64 ``[P]``, written at every ``select``.
+    """
+    dom, tgt, shift, clip = pairs
+    parts = [(rule, sel) for rule, sel in parts if sel.numel()]
+    if not parts:
+        return
+    fused = not _adjoint_wanted(backend, corners, normals, cent) and resolve_backend(backend, corners, normals, cent)
+    if not fused:
+        for rule, sel in parts:
+            group_sums(corners, normals, cent, dom, tgt, shift, clip, rule, eps, backend=backend,
+                       chunk_points=chunk_points, select=sel, out=out)
+        return
+    size = torch.tensor([rule[0].numel() for rule, _ in parts], dtype=torch.int64)
+    table = torch.zeros(3, len(parts), int(size.max()), dtype=torch.float64)
+    for g, (rule, _) in enumerate(parts):
+        for k in range(3):
+            table[k, g, : rule[k].numel()] = rule[k]
+    bounds = torch.zeros(len(parts) + 1, dtype=torch.int64)
+    bounds[1:] = torch.cumsum(torch.tensor([sel.numel() for _, sel in parts]), 0)
+    sel = parts[0][1] if len(parts) == 1 else torch.cat([sel for _, sel in parts])
+    blocks = max(1, min(int(bounds[-1]), 64 * torch.get_num_threads()))
+    launch(loops().rule_sums, *(_np(t) for t in (corners, normals, cent, dom, tgt, shift, clip, sel, bounds,
+                                                 table[0], table[1], table[2], size)), float(eps), blocks, out.numpy())
 
 
 def _adjoint_group_sums(corners, normals, cent, dom, tgt, shift, clip, rule, eps, need, vis) -> Tensor:
@@ -338,102 +404,3 @@ def fan_sums(
             f = f * frac
         total = total + (f * jac * w).sum(1)
     return total
-
-
-def point_sums(
-    x: Tensor,
-    normal: Tensor,
-    rows: Tensor,
-    polygon: Tensor,
-    which: Tensor,
-    plane: tuple[Tensor, Tensor],
-    backend: Backend = "auto",
-    chunk: int = 1 << 16,
-) -> tuple[Tensor, Tensor]:
-    """Point-to-polygon form factors over pairs ``(x[rows[n]], polygon[which[n]])``, and which side of a plane
-    each point lies on.
-
-    The compiled loop of :func:`~torch_interreflect.formfactors.contour.point_polygon_factor` over pairs, without
-    gathering points or polygons per pair (one point and one polygon serve many pairs).
-
-    Args:
-        x: Points in metres. Shape ``[P, 3]``.
-        normal: Unit normal at each point. Shape ``[P, 3]``.
-        rows: The point of each pair (int64 in ``[0, P)``). Shape ``[N]``.
-        polygon: Polygons, each on or above the tangent plane of the points paired with it, padded by repeating
-            a corner. Shape ``[Q, K, 3]``.
-        which: The polygon of each pair (int64 in ``[0, Q)``). Shape ``[N]``.
-        plane: ``(centre [Q, 3], axis [Q, 3])``: a plane per polygon (e.g. its facet's centroid and normal).
-        backend: As for :func:`group_sums`.
-        chunk: Pairs per step of the torch path (bounds its temporaries).
-
-    Returns:
-        ``(factors, ahead)``: ``F(x_rows → polygon_which)`` (dimensionless, the dtype of ``x``) and whether
-        ``(x_rows − centre_which)·axis_which > 0`` (bool). Shape ``[N]`` each.
-    """
-    centre, axis = plane
-    if not resolve_backend(backend, x, normal, polygon):
-        outs, aheads = [], []
-        for s in range(0, rows.numel(), chunk):
-            r, w = rows[s : s + chunk], which[s : s + chunk]
-            outs.append(point_polygon_factor(x[r][:, None, :], normal[r], polygon[w])[:, 0])
-            aheads.append(((x[r] - centre[w]) * axis[w]).sum(-1) > 0)
-        if not outs:
-            return x.new_zeros(0), torch.zeros(0, dtype=torch.bool, device=x.device)
-        return torch.cat(outs), torch.cat(aheads)
-    out = torch.empty(rows.numel(), dtype=torch.float64)
-    ahead = torch.empty(rows.numel(), dtype=torch.bool)
-    if rows.numel():
-        d = [_np(t.double()) for t in (x, normal)]
-        launch(loops().point_factors, *d, _np(rows.long()), _np(polygon.double()), _np(which.long()),
-             _np(centre.double()), _np(axis.double()), out.numpy(), ahead.numpy())
-    return out.to(x.dtype), ahead
-
-
-class _PointPolygon(torch.autograd.Function):
-    """The compiled contour formula from points to polygons, one pair per row, with its compiled adjoint
-    (gradients to the points, normals and polygon corners). First derivatives only."""
-
-    @staticmethod
-    def forward(ctx, x, normal, poly, count):  # type: ignore[override]
-        out = torch.empty(x.shape[0], dtype=torch.float64)
-        if x.shape[0]:
-            launch(loops().point_polygon_sums, _np(x.double()), _np(normal.double()), _np(poly.double()),
-                   _np(count.long()), out.numpy())
-        ctx.save_for_backward(x, normal, poly, count)
-        return out.to(x.dtype)
-
-    @staticmethod
-    def backward(ctx, gout):  # type: ignore[override]
-        _first_order_only()
-        x, normal, poly, count = ctx.saved_tensors
-        gx = torch.empty(x.shape, dtype=torch.float64)
-        gn = torch.empty(normal.shape, dtype=torch.float64)
-        gp = torch.empty(poly.shape, dtype=torch.float64)
-        if x.shape[0]:
-            launch(loops().point_polygon_grad, _np(x.double()), _np(normal.double()), _np(poly.double()),
-                   _np(count.long()), _np(gout.double()), gx.numpy(), gn.numpy(), gp.numpy())
-        return gx.to(x.dtype), gn.to(normal.dtype), gp.to(poly.dtype), None
-
-
-def point_polygon_factors(x: Tensor, normal: Tensor, polygon: Tensor, backend: Backend = "auto") -> Tensor:
-    """``F(x_p → polygon_p)`` per row: :func:`~torch_interreflect.formfactors.contour.point_polygon_factor` with one
-    point per polygon, through the compiled loop and its compiled adjoint on the CPU (first derivatives; memory
-    O(rows) under autograd), torch elsewhere or with ``backend="torch"``.
-
-    Args:
-        x: Points in metres. Shape ``[P, 3]``.
-        normal: Unit normal at each point. Shape ``[P, 3]``.
-        polygon: Polygons on or above the points' tangent planes, padded by repeating a corner. Shape ``[P, K, 3]``.
-        backend: ``"auto"`` / ``"fused"`` (compiled where it applies) or ``"torch"``.
-
-    Returns:
-        Form factors (dimensionless), the dtype of ``x``. Shape ``[P]``.
-    """
-    if backend not in ("auto", "fused", "torch"):
-        raise ValueError(f"backend must be 'auto', 'fused' or 'torch'; got {backend!r}")
-    compiled = backend != "torch" and loops() is not None and all(t.device.type == "cpu" for t in (x, normal, polygon))
-    if not compiled:
-        return point_polygon_factor(x[:, None, :], normal, polygon)[:, 0]
-    count = torch.full((x.shape[0],), polygon.shape[1], dtype=torch.int64)
-    return _PointPolygon.apply(x, normal, polygon, count)

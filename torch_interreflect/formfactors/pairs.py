@@ -21,7 +21,7 @@ from .compiled import launch, loops
 from .memory import check_memory, dense_kernel_bytes
 from .rules import default_adjacent_order, order_for
 
-__all__ = ["SPARSE_DENSITY", "PairClasses", "classify_pairs", "facing_pairs", "rule_groups"]
+__all__ = ["SPARSE_DENSITY", "PairClasses", "classify_pairs", "facing_pairs", "order_pairs", "rule_groups"]
 
 #: With ``layout="auto"``, a matrix is stored sparse only when at most this share of its entries is nonzero.
 SPARSE_DENSITY = 0.25
@@ -49,8 +49,8 @@ def facing_pairs(sc: Scene, eps: float, output: tuple[str, int]) -> tuple[Tensor
     else:
         c, n, m = (t.detach().contiguous().numpy() for t in (sc.corners, sc.normals, sc.centroids))
         counts = np.zeros(F, dtype=np.int64)
-        none = np.empty(0, dtype=np.int64)
-        launch(kern.facing_pairs, c, n, m, float(eps), np.zeros(F, dtype=np.int64), none, none, counts)
+        mask = np.empty((F, F), dtype=np.bool_)  # upper triangle written: one pass of the facing tests
+        launch(kern.facing_mask, c, n, m, float(eps), mask, counts)
         pairs = int(counts.sum())
     dense = dense or (layout == "auto" and 2 * pairs > SPARSE_DENSITY * F * F)
     check_memory(dense_kernel_bytes(F, pairs, dense, itemsize), what + f" ({pairs} facet pairs)", remedy)
@@ -60,7 +60,7 @@ def facing_pairs(sc: Scene, eps: float, output: tuple[str, int]) -> tuple[Tensor
     start = np.zeros(F, dtype=np.int64)
     np.cumsum(counts[:-1], out=start[1:])
     iu, ju = np.empty(pairs, dtype=np.int64), np.empty(pairs, dtype=np.int64)
-    launch(kern.facing_pairs, c, n, m, float(eps), start, iu, ju, np.empty(F, dtype=np.int64))
+    launch(kern.mask_pairs, mask, start, iu, ju)
     return torch.from_numpy(iu), torch.from_numpy(ju)
 
 
@@ -79,6 +79,22 @@ class PairClasses:
     n_adj: int  # Gauss order of the graded rules
 
 
+def order_pairs(areas: Tensor, iu: Tensor, ju: Tensor) -> tuple[Tensor, Tensor]:
+    """``(dom, tgt)``: each pair ``(iu, ju)`` with its smaller facet (the integration domain) first; ties keep
+    ``iu`` first.
+
+    Shape:
+        - areas: ``[F]`` (m²); iu, ju and the outputs: ``[P]``
+    """
+    kern = loops("pairs")
+    if kern is None or areas.device.type != "cpu":
+        swap = areas[iu] > areas[ju]
+        return torch.where(swap, ju, iu), torch.where(swap, iu, ju)
+    dom, tgt = torch.empty_like(iu), torch.empty_like(ju)
+    launch(kern.order_pairs, *(t.detach().contiguous().numpy() for t in (areas, iu, ju)), dom.numpy(), tgt.numpy())
+    return dom, tgt
+
+
 def classify_pairs(sc: Scene, dom: Tensor, tgt: Tensor, tol: float, adjacent_order: int | None,
                    eps: float) -> PairClasses:
     """Classify pairs ``(dom, tgt)``: shared edge / shared vertex / straddling / regular, and the Gauss orders."""
@@ -90,12 +106,10 @@ def classify_pairs(sc: Scene, dom: Tensor, tgt: Tensor, tol: float, adjacent_ord
     if kern is not None and corners.device.type == "cpu":
         rho = torch.empty(P, dtype=torch.float64)
         has_edge, has_vertex, clip_t, clip_d = (torch.empty(P, dtype=torch.bool) for _ in range(4))
-        shift = torch.empty(P, dtype=torch.int64)
+        shift, order = torch.empty(P, dtype=torch.int64), torch.empty(P, dtype=torch.int64)
         args = [t.detach().contiguous().numpy() for t in (corners, normals, cent, diam, radius, dom, tgt)]
-        launch(kern.classify, *args, float(eps), *(t.numpy() for t in (rho, has_edge, has_vertex, shift, clip_t,
-                                                                       clip_d)))
-        order = torch.empty(P, dtype=torch.int64)
-        launch(kern.gauss_orders, rho.numpy(), max(-math.log10(tol), 1.0), order.numpy())
+        launch(kern.classify, *args, float(eps), max(-math.log10(tol), 1.0),
+               *(t.numpy() for t in (rho, order, has_edge, has_vertex, shift, clip_t, clip_d)))
         return PairClasses(order, rho, has_edge, has_vertex, shift, clip_t, clip_d, n_adj)
     dist = (cent[dom] - cent[tgt]).norm(dim=-1)
     rho = dist / torch.maximum(diam[dom], diam[tgt])
@@ -129,17 +143,17 @@ def classify_pairs(sc: Scene, dom: Tensor, tgt: Tensor, tol: float, adjacent_ord
 def rule_groups(cls: PairClasses) -> tuple[list[tuple[str, Tensor, int]], Tensor]:
     """``(groups, clipped)``: ``(rule kind, pair indices, order)`` for the unclipped pairs (edge-graded, then
     vertex-graded, then plain Gauss by ascending order; indices ascending in each), and the clipped pairs."""
-    special = cls.clip_d
     # one key per pair and one stable sort: 0 edge, 1 vertex, 1 + n plain of order n, 64 clipped
-    key = torch.where(cls.has_edge, 0, torch.where(cls.has_vertex, 1, 1 + cls.order))
-    key = torch.where(special, 64, key)
     kern = loops("pairs")
-    if kern is not None and key.device.type == "cpu":
-        idx = torch.empty(key.numel(), dtype=torch.int64)
+    if kern is not None and cls.order.device.type == "cpu":
+        idx = torch.empty(cls.order.numel(), dtype=torch.int64)
         counts_np = np.zeros(65, dtype=np.int64)
-        kern.stable_buckets(key.contiguous().numpy(), 65, idx.numpy(), counts_np)
+        launch(kern.rule_buckets, *(t.contiguous().numpy() for t in (cls.has_edge, cls.has_vertex, cls.order,
+                                                                     cls.clip_d)), idx.numpy(), counts_np)
         counts = counts_np.tolist()
     else:
+        key = torch.where(cls.has_edge, 0, torch.where(cls.has_vertex, 1, 1 + cls.order))
+        key = torch.where(cls.clip_d, 64, key)
         keys, idx = torch.sort(key, stable=True)
         counts = torch.bincount(keys, minlength=65).tolist()
     parts = torch.split(idx, counts)

@@ -35,10 +35,10 @@ from ..geometry._polygon import (
 from ..geometry.scene import Scene
 from .checks import check_row_sums, warn_if_wrong_side
 from .compiled import launch, loops
-from .fused import Backend, fan_sums, group_sums
+from .fused import Backend, fan_sums, group_sums, grouped_sums
 from .montecarlo import monte_carlo
 from .operator import FormFactors
-from .pairs import SPARSE_DENSITY, PairClasses, classify_pairs, facing_pairs, rule_groups
+from .pairs import SPARSE_DENSITY, PairClasses, classify_pairs, facing_pairs, order_pairs, rule_groups
 from .rules import quadrature_rule
 from .sampling import check_sample_count
 from .visibility import VISIBILITY_ANGLE, PointVisibility, blocker_candidates, check_visibility_options
@@ -246,7 +246,7 @@ def _quadrature(
     approx = torch.zeros(F, dtype=torch.bool)
     approx[dom[need]] = True
     approx[tgt[need]] = True
-    info.update(occluded_pairs=int(need.sum()), rays=vis.rays if vis else 0, occluded_facets=approx)
+    info.update(occluded_pairs=int(torch.count_nonzero(need)), rays=vis.rays if vis else 0, occluded_facets=approx)
 
     return (*pair_entries(sc.areas, dom, tgt, value), info)
 
@@ -261,12 +261,8 @@ def pair_entries(areas: Tensor, dom: Tensor, tgt: Tensor, value: Tensor) -> tupl
     """
     kern = loops("pairs")
     if kern is not None and value.device.type == "cpu" and not value.requires_grad:
-        n = 2 * int((value > 0).sum())
-        rows, cols = torch.empty(n, dtype=torch.int64), torch.empty(n, dtype=torch.int64)
-        vals = torch.empty(n, dtype=value.dtype)
-        launch(kern.pair_entries, *(t.contiguous().numpy() for t in (areas.to(value.dtype), dom, tgt, value)),
-               rows.numpy(), cols.numpy(), vals.numpy())
-        return rows, cols, vals
+        out = launch(kern.pair_entries, *(t.contiguous().numpy() for t in (areas.to(value.dtype), dom, tgt, value)))
+        return tuple(torch.from_numpy(a) for a in out)  # type: ignore[return-value]
     keep = torch.nonzero(value > 0).reshape(-1)  # areas are positive: both directions are kept or dropped together
     dom, tgt, value = dom[keep], tgt[keep], value[keep]
     return torch.cat([dom, tgt]), torch.cat([tgt, dom]), torch.cat([value / areas[dom], value / areas[tgt]])
@@ -283,7 +279,13 @@ def assemble(rows: Tensor, cols: Tensor, vals: Tensor, F: int, layout: str, dtyp
         layout = "sparse" if sparse else "dense"
     if layout == "dense":
         mat = torch.zeros(F, F, dtype=dtype, device=vals.device)  # in the output dtype: no [F, F] copy
-        mat[rows, cols] = vals.to(dtype)
+        kern = loops("pairs")
+        if kern is not None and vals.device.type == "cpu" and not vals.requires_grad and dtype in (torch.float32,
+                                                                                                  torch.float64):
+            launch(kern.scatter_dense, rows.contiguous().numpy(), cols.contiguous().numpy(),
+                   vals.contiguous().numpy(), mat.numpy())
+        else:
+            mat[rows, cols] = vals.to(dtype)
         return mat, layout
     return sparse_matrix(rows, cols, vals, (F, F), dtype), layout
 
@@ -319,9 +321,7 @@ def pair_values(
     """
     areas = sc.areas
     # integrate over the smaller facet of each pair (the "domain"), contour over the other ("target")
-    swap = areas[iu] > areas[ju]
-    dom = torch.where(swap, ju, iu)
-    tgt = torch.where(swap, iu, ju)
+    dom, tgt = order_pairs(areas, iu, ju)
 
     t = time.perf_counter()
     value = torch.empty(dom.numel(), dtype=torch.float64)  # A_dom F_dom,tgt
@@ -348,7 +348,7 @@ def pair_values(
     points = integrate_groups(sc, dom, tgt, cls, groups, visibility, value, chunk_points, eps, bar)
     points += integrate_clipped(sc, dom, tgt, cls, clipped, visibility, value, chunk_points, eps, bar)
     bar.close()
-    value = value.clamp_min(0.0)
+    value = value.clamp_min(0.0) if value.requires_grad else value.clamp_min_(0.0)
     if value.requires_grad and vis is not None and visibility_grad_points > 0 and bool(need.any()):
         # what autograd misses with ray-cast visibility: zero in value, the shadow terms in the gradient
         t_grad = time.perf_counter()
@@ -361,8 +361,8 @@ def pair_values(
         ("points", int(points)),
         ("seconds_quadrature", time.perf_counter() - t - seconds_vis),
         ("seconds_visibility", seconds_vis),
-        ("pairs_adjacent", int((cls.has_edge | cls.has_vertex).sum())),
-        ("pairs_clipped", int((cls.clip_t | cls.clip_d).sum())),
+        ("pairs_adjacent", int(torch.count_nonzero(cls.has_edge)) + int(torch.count_nonzero(cls.has_vertex))),
+        ("pairs_clipped", int(torch.count_nonzero(cls.clip_t | cls.clip_d))),
     ):
         info[key] = info.get(key, 0) + add
     return dom, tgt, value, need, vis
@@ -379,13 +379,23 @@ def integrate_groups(sc: Scene, dom: Tensor, tgt: Tensor, cls: PairClasses, grou
     """
     need, vis, backend = visibility
     corners, normals, cent = sc.corners, sc.normals, sc.centroids
+    rays = vis is not None and bool(need.any())
     points = 0
+    visible = []  # (rule, pairs) whose points are all visible: one launch for all groups
     for kind, sel, n in groups:
         rule = quadrature_rule(kind, n, torch.float64, torch.device("cpu"))
-        value[sel] = group_sums(corners, normals, cent, dom[sel], tgt[sel], cls.shift[sel], cls.clip_t[sel], rule, eps,
-                                need[sel], vis, backend, chunk_points=chunk_points)
+        free = sel
+        if rays:
+            occluded = need[sel]
+            if bool(occluded.any()):
+                group_sums(corners, normals, cent, dom, tgt, cls.shift, cls.clip_t, rule, eps, need, vis, backend,
+                           chunk_points=chunk_points, select=sel[occluded], out=value)
+                free = sel[~occluded]
+                bar.update(sel.numel() - free.numel())
+        visible.append((rule, free))
         points += sel.numel() * rule[0].numel()
-        bar.update(sel.numel())
+    grouped_sums(corners, normals, cent, (dom, tgt, cls.shift, cls.clip_t), visible, eps, value, backend, chunk_points)
+    bar.update(sum(sel.numel() for _, sel in visible))
     return points
 
 
