@@ -23,9 +23,11 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import Literal
 
+import numpy as np
 import torch
 from torch import Tensor
 
+from .._threads import loop_threads
 from ..geometry._polygon import bilinear, clip_polygons
 from .compiled import launch, loops
 from .contour import point_polygon_factor
@@ -294,8 +296,9 @@ def grouped_sums(
             table[k, g, : rule[k].numel()] = rule[k]
     bounds = torch.zeros(len(parts) + 1, dtype=torch.int64)
     bounds[1:] = torch.cumsum(torch.tensor([sel.numel() for _, sel in parts]), 0)
-    sel = parts[0][1] if len(parts) == 1 else torch.cat([sel for _, sel in parts])
-    blocks = max(1, min(int(bounds[-1]), 64 * torch.get_num_threads()))
+    # numpy, not torch.cat: a torch parallel region right before the launch leaves OpenMP workers spinning on a core
+    sel = parts[0][1] if len(parts) == 1 else torch.from_numpy(np.concatenate([_np(sel) for _, sel in parts]))
+    blocks = max(1, min(int(bounds[-1]), 64 * loop_threads()))
     launch(loops().rule_sums, *(_np(t) for t in (corners, normals, cent, dom, tgt, shift, clip, sel, bounds,
                                                  table[0], table[1], table[2], size)), float(eps), blocks, out.numpy())
 
