@@ -148,50 +148,94 @@ def classify(corners, normals, cent, diam, radius, dom, tgt, eps, digits, rho, o
         clip_d[p] = _behind(corners, cent, normals, a, b, eps)
 
 
+@njit(cache=True)
+def _section_meets_box(corners, a, b, dd, eps, glo, ghi):
+    """Whether the bounding box of the cross-section of the pair's convex hull with a plane (the corners' signed
+    distances ``dd [8]``: ``a``'s corners, then ``b``'s) reaches the box ``glo, ghi [3]`` (within ``eps``).
+
+    The cross-section of the hull of finitely many points is the hull of the points on the plane and of the
+    crossings of the segments between points on opposite sides. Every ray between the two facets lies in the hull,
+    so it crosses the plane inside the cross-section: a group of facets on the plane outside that box blocks none.
+    """
+    lo0 = lo1 = lo2 = math.inf
+    hi0 = hi1 = hi2 = -math.inf
+    for i in range(8):
+        fi = a if i < 4 else b
+        ki = i % 4
+        di = dd[i]
+        if abs(di) <= eps:
+            x0, x1, x2 = corners[fi, ki, 0], corners[fi, ki, 1], corners[fi, ki, 2]
+            lo0, lo1, lo2 = min(lo0, x0), min(lo1, x1), min(lo2, x2)
+            hi0, hi1, hi2 = max(hi0, x0), max(hi1, x1), max(hi2, x2)
+        elif di > eps:
+            for j in range(8):
+                dj = dd[j]
+                if dj < -eps:
+                    fj = a if j < 4 else b
+                    kj = j % 4
+                    t = di / (di - dj)
+                    x0 = corners[fi, ki, 0] + t * (corners[fj, kj, 0] - corners[fi, ki, 0])
+                    x1 = corners[fi, ki, 1] + t * (corners[fj, kj, 1] - corners[fi, ki, 1])
+                    x2 = corners[fi, ki, 2] + t * (corners[fj, kj, 2] - corners[fi, ki, 2])
+                    lo0, lo1, lo2 = min(lo0, x0), min(lo1, x1), min(lo2, x2)
+                    hi0, hi1, hi2 = max(hi0, x0), max(hi1, x1), max(hi2, x2)
+    return (glo[0] <= hi0 + eps and ghi[0] >= lo0 - eps and glo[1] <= hi1 + eps and ghi[1] >= lo1 - eps
+            and glo[2] <= hi2 + eps and ghi[2] >= lo2 - eps)
+
+
+#: pairs per block of :func:`blockers` (scratch allocated once per block)
+_BLOCKER_BLOCK = 256
+
+
 @njit(cache=True, parallel=True)
 def blockers(corners, cent, lo, hi, radius, pn, po, plo, phi, g_centre, g_radius, dom, tgt, eps, need):
     """``need[p]``: some plane group could block pair ``(dom, tgt)`` (see
     :func:`.visibility.blocker_candidates`)."""
     P = dom.shape[0]
     G = pn.shape[0]
-    for p in prange(P):
-        a = dom[p]
-        b = tgt[p]
-        ca0, ca1, ca2 = cent[a, 0], cent[a, 1], cent[a, 2]
-        s0, s1, s2 = cent[b, 0] - ca0, cent[b, 1] - ca1, cent[b, 2] - ca2
-        ss = max(s0 * s0 + s1 * s1 + s2 * s2, 1e-300)
-        rr = max(radius[a], radius[b])
-        found = False
-        for g in range(G):
-            # the group's box overlaps the pair's
-            ok = True
-            for x in range(3):
-                blo = min(lo[a, x], lo[b, x])
-                bhi = max(hi[a, x], hi[b, x])
-                if not (plo[g, x] < bhi - eps and phi[g, x] > blo + eps):
-                    ok = False
-                    break
-            if not ok:
-                continue
-            # the group's bounding sphere within reach of the capsule around the centroids' segment
-            t = ((g_centre[g, 0] - ca0) * s0 + (g_centre[g, 1] - ca1) * s1 + (g_centre[g, 2] - ca2) * s2) / ss
-            t = min(max(t, 0.0), 1.0)
-            if _dist(g_centre[g, 0], g_centre[g, 1], g_centre[g, 2], ca0 + t * s0, ca1 + t * s1,
-                     ca2 + t * s2) > rr + g_radius[g] + eps:
-                continue
-            # the group's plane strictly separates corners of the pair
-            above = False
-            below = False
-            for f in (a, b):
-                for k in range(4):
+    for blk in prange((P + _BLOCKER_BLOCK - 1) // _BLOCKER_BLOCK):
+        dd = np.empty(8)
+        for p in range(blk * _BLOCKER_BLOCK, min(P, (blk + 1) * _BLOCKER_BLOCK)):
+            a = dom[p]
+            b = tgt[p]
+            ca0, ca1, ca2 = cent[a, 0], cent[a, 1], cent[a, 2]
+            s0, s1, s2 = cent[b, 0] - ca0, cent[b, 1] - ca1, cent[b, 2] - ca2
+            ss = max(s0 * s0 + s1 * s1 + s2 * s2, 1e-300)
+            rr = max(radius[a], radius[b])
+            found = False
+            for g in range(G):
+                # the group's box overlaps the pair's
+                ok = True
+                for x in range(3):
+                    blo = min(lo[a, x], lo[b, x])
+                    bhi = max(hi[a, x], hi[b, x])
+                    if not (plo[g, x] < bhi - eps and phi[g, x] > blo + eps):
+                        ok = False
+                        break
+                if not ok:
+                    continue
+                # the group's bounding sphere within reach of the capsule around the centroids' segment
+                t = ((g_centre[g, 0] - ca0) * s0 + (g_centre[g, 1] - ca1) * s1 + (g_centre[g, 2] - ca2) * s2) / ss
+                t = min(max(t, 0.0), 1.0)
+                if _dist(g_centre[g, 0], g_centre[g, 1], g_centre[g, 2], ca0 + t * s0, ca1 + t * s1,
+                         ca2 + t * s2) > rr + g_radius[g] + eps:
+                    continue
+                # the group's plane strictly separates corners of the pair
+                above = False
+                below = False
+                for i in range(8):
+                    f = a if i < 4 else b
+                    k = i % 4
                     d = (corners[f, k, 0] * pn[g, 0] + corners[f, k, 1] * pn[g, 1]
                          + corners[f, k, 2] * pn[g, 2]) - po[g]
+                    dd[i] = d
                     above |= d > eps
                     below |= d < -eps
-            if above and below:
-                found = True
-                break
-        need[p] = found
+                # ... and the rays' crossings of the plane can reach the group's box
+                if above and below and _section_meets_box(corners, a, b, dd, eps, plo[g], phi[g]):
+                    found = True
+                    break
+            need[p] = found
 
 
 @njit(cache=True, inline="always")

