@@ -1,6 +1,8 @@
 """Ray-cast visibility against an exact penumbra (a half-plane blocker between a point and a facet), and against a
 closed enclosure's row sums (a thin plate floating in a box)."""
 
+import math
+
 import numpy as np
 import pytest
 import torch
@@ -183,16 +185,22 @@ def test_compiled_visibility_matches_the_torch_path(monkeypatch):
     assert int(((got - ref).abs() > 1e-6).sum()) <= 5
 
 
-def test_blocker_candidates_hold_every_blocked_pair_and_few_others():
-    """Oracle: 6 × 6 segments per facing pair of a room with blocks (planar walls), cast with the library's end
-    gaps, only where both cosines are positive (the rays that carry weight). Every pair with a blocked segment is
-    a candidate, and the cross-section test keeps the candidates within 1.45× the blocked pairs (measured 1.39;
-    1.80 with the plane groups' boxes against the pairs' boxes only)."""
+@pytest.mark.parametrize(("turn", "bound"), [(0.0, 1.45), (0.5, 1.7)])
+def test_blocker_candidates_hold_every_blocked_pair_and_few_others(turn, bound):
+    """Oracle: 6 × 6 segments per facing pair of a room with blocks (planar walls; also turned about two axes),
+    cast with the library's end gaps, only where both cosines are positive (the rays that carry weight). Every
+    pair with a blocked segment is a candidate, and the cross-section tests keep the candidates within ``bound``×
+    the blocked pairs (measured 1.39 and 1.62; 1.80 and 1.81 with the plane groups' boxes against the pairs' boxes
+    only, and the turned room 1.81 with the cross-section's axis-aligned box alone)."""
     from torch_interreflect.formfactors import pairs, visibility
     from torch_interreflect.geometry._polygon import bilinear, plane_eps
     from torch_interreflect.geometry.raycast import RayCaster
 
     sc = ti.scenes.room(divisions=2).to(torch.float64)
+    c, s, c2, s2 = math.cos(turn), math.sin(turn), math.cos(0.6 * turn), math.sin(0.6 * turn)
+    rot = torch.tensor([[c, -s, 0], [s, c, 0], [0, 0, 1.0]], dtype=torch.float64) @ torch.tensor(
+        [[1.0, 0, 0], [0, c2, -s2], [0, s2, c2]], dtype=torch.float64)
+    sc = ti.Scene.from_parts(sc.corners @ rot.T, sc.is_triangle, sc.material, sc.material_names)
     eps = plane_eps(sc)
     iu, ju = pairs.facing_pairs(sc, eps, ("dense", 8))
     need = visibility.blocker_candidates(sc, iu, ju, eps)
@@ -212,4 +220,4 @@ def test_blocker_candidates_hold_every_blocked_pair_and_few_others():
     blocked = (torch.from_numpy(hit).reshape(iu.numel(), -1) & front).any(1)
     assert int(blocked.sum()) > 1000
     assert not bool((blocked & ~need).any())
-    assert int(need.sum()) <= 1.45 * int(blocked.sum())
+    assert int(need.sum()) <= bound * int(blocked.sum())

@@ -148,25 +148,36 @@ def classify(corners, normals, cent, diam, radius, dom, tgt, eps, digits, rho, o
         clip_d[p] = _behind(corners, cent, normals, a, b, eps)
 
 
+@njit(cache=True, inline="always")
+def _grow(box, x0, x1, x2, e1, e2):
+    """Grow ``box`` (xyz lo, xyz hi, then e1 lo / hi, e2 lo / hi) by the point ``x``."""
+    u = x0 * e1[0] + x1 * e1[1] + x2 * e1[2]
+    v = x0 * e2[0] + x1 * e2[1] + x2 * e2[2]
+    box[0], box[1], box[2] = min(box[0], x0), min(box[1], x1), min(box[2], x2)
+    box[3], box[4], box[5] = max(box[3], x0), max(box[4], x1), max(box[5], x2)
+    box[6], box[7] = min(box[6], u), max(box[7], u)
+    box[8], box[9] = min(box[8], v), max(box[9], v)
+
+
 @njit(cache=True)
-def _section_meets_box(corners, a, b, dd, eps, glo, ghi):
-    """Whether the bounding box of the cross-section of the pair's convex hull with a plane (the corners' signed
-    distances ``dd [8]``: ``a``'s corners, then ``b``'s) reaches the box ``glo, ghi [3]`` (within ``eps``).
+def _section_meets_box(corners, a, b, dd, eps, glo, ghi, e1, e2, rect, box):
+    """Whether the cross-section of the pair's convex hull with a plane (the corners' signed distances ``dd [8]``:
+    ``a``'s corners, then ``b``'s) can meet the plane group: its bounding box reaches the group's box ``glo, ghi
+    [3]`` and its bounding rectangle in the plane's axes ``e1, e2`` reaches the group's ``rect [4]`` (within
+    ``eps``). ``box [10]``: scratch.
 
     The cross-section of the hull of finitely many points is the hull of the points on the plane and of the
     crossings of the segments between points on opposite sides. Every ray between the two facets lies in the hull,
-    so it crosses the plane inside the cross-section: a group of facets on the plane outside that box blocks none.
+    so it crosses the plane inside the cross-section: a group of facets on the plane outside it blocks none.
     """
-    lo0 = lo1 = lo2 = math.inf
-    hi0 = hi1 = hi2 = -math.inf
+    for k in range(10):
+        box[k] = math.inf if k in (0, 1, 2, 6, 8) else -math.inf
     for i in range(8):
         fi = a if i < 4 else b
         ki = i % 4
         di = dd[i]
         if abs(di) <= eps:
-            x0, x1, x2 = corners[fi, ki, 0], corners[fi, ki, 1], corners[fi, ki, 2]
-            lo0, lo1, lo2 = min(lo0, x0), min(lo1, x1), min(lo2, x2)
-            hi0, hi1, hi2 = max(hi0, x0), max(hi1, x1), max(hi2, x2)
+            _grow(box, corners[fi, ki, 0], corners[fi, ki, 1], corners[fi, ki, 2], e1, e2)
         elif di > eps:
             for j in range(8):
                 dj = dd[j]
@@ -174,13 +185,14 @@ def _section_meets_box(corners, a, b, dd, eps, glo, ghi):
                     fj = a if j < 4 else b
                     kj = j % 4
                     t = di / (di - dj)
-                    x0 = corners[fi, ki, 0] + t * (corners[fj, kj, 0] - corners[fi, ki, 0])
-                    x1 = corners[fi, ki, 1] + t * (corners[fj, kj, 1] - corners[fi, ki, 1])
-                    x2 = corners[fi, ki, 2] + t * (corners[fj, kj, 2] - corners[fi, ki, 2])
-                    lo0, lo1, lo2 = min(lo0, x0), min(lo1, x1), min(lo2, x2)
-                    hi0, hi1, hi2 = max(hi0, x0), max(hi1, x1), max(hi2, x2)
-    return (glo[0] <= hi0 + eps and ghi[0] >= lo0 - eps and glo[1] <= hi1 + eps and ghi[1] >= lo1 - eps
-            and glo[2] <= hi2 + eps and ghi[2] >= lo2 - eps)
+                    _grow(box, corners[fi, ki, 0] + t * (corners[fj, kj, 0] - corners[fi, ki, 0]),
+                          corners[fi, ki, 1] + t * (corners[fj, kj, 1] - corners[fi, ki, 1]),
+                          corners[fi, ki, 2] + t * (corners[fj, kj, 2] - corners[fi, ki, 2]), e1, e2)
+    for x in range(3):
+        if glo[x] > box[3 + x] + eps or ghi[x] < box[x] - eps:
+            return False
+    return (rect[0] <= box[7] + eps and rect[1] >= box[6] - eps and rect[2] <= box[9] + eps
+            and rect[3] >= box[8] - eps)
 
 
 #: pairs per block of :func:`blockers` (scratch allocated once per block)
@@ -188,13 +200,14 @@ _BLOCKER_BLOCK = 256
 
 
 @njit(cache=True, parallel=True)
-def blockers(corners, cent, lo, hi, radius, pn, po, plo, phi, g_centre, g_radius, dom, tgt, eps, need):
+def blockers(corners, cent, lo, hi, radius, pn, po, plo, phi, e1, e2, rect, g_centre, g_radius, dom, tgt, eps, need):
     """``need[p]``: some plane group could block pair ``(dom, tgt)`` (see
     :func:`.visibility.blocker_candidates`)."""
     P = dom.shape[0]
     G = pn.shape[0]
     for blk in prange((P + _BLOCKER_BLOCK - 1) // _BLOCKER_BLOCK):
         dd = np.empty(8)
+        box = np.empty(10)
         for p in range(blk * _BLOCKER_BLOCK, min(P, (blk + 1) * _BLOCKER_BLOCK)):
             a = dom[p]
             b = tgt[p]
@@ -232,7 +245,8 @@ def blockers(corners, cent, lo, hi, radius, pn, po, plo, phi, g_centre, g_radius
                     above |= d > eps
                     below |= d < -eps
                 # ... and the rays' crossings of the plane can reach the group's box
-                if above and below and _section_meets_box(corners, a, b, dd, eps, plo[g], phi[g]):
+                if above and below and _section_meets_box(corners, a, b, dd, eps, plo[g], phi[g], e1[g], e2[g],
+                                                          rect[g], box):
                     found = True
                     break
             need[p] = found

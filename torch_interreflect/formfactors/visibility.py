@@ -44,10 +44,10 @@ def blocker_candidates(sc: Scene, dom: Tensor, tgt: Tensor, eps: float) -> Tenso
     sc = _detached(sc)
     corners, cent = sc.corners, sc.centroids
     need = torch.zeros(dom.numel(), dtype=torch.bool)
-    groups = plane_groups(sc, eps)
+    groups = plane_groups(sc, eps, frames=True)
     if groups is None:
         return need
-    pn, po, plo, phi = groups
+    pn, po, plo, phi, e1, e2, rect = groups
     n_planes = int(pn.shape[0])
     lo = corners.min(1).values
     hi = corners.max(1).values
@@ -55,15 +55,15 @@ def blocker_candidates(sc: Scene, dom: Tensor, tgt: Tensor, eps: float) -> Tenso
     radius = (corners - cent[:, None, :]).norm(dim=-1).max(dim=1).values
     kern = loops("pairs")
     if kern is not None and corners.device.type == "cpu":
-        args = (corners, cent, lo, hi, radius, pn, po, plo, phi, g_centre, g_radius, dom, tgt)
+        args = (corners, cent, lo, hi, radius, pn, po, plo, phi, e1, e2, rect, g_centre, g_radius, dom, tgt)
         launch(kern.blockers, *(t.contiguous().numpy() for t in args), float(eps), need.numpy())
         return need
-    chunk = max(1, (1 << 16) // n_planes)
+    chunk = max(1, (1 << 22) // (8 * n_planes))
     for s in range(0, dom.numel(), chunk):
         a, b = dom[s : s + chunk], tgt[s : s + chunk]
         pts = torch.cat([corners[a], corners[b]], dim=1)  # [c, 8, 3]
         d = torch.einsum("cpx,nx->cnp", pts, pn) - po[None, :, None]  # [c, planes, 8]
-        straddle = (d > eps).any(-1) & (d < -eps).any(-1) & _section_meets_box(pts, d, eps, plo, phi)
+        straddle = (d > eps).any(-1) & (d < -eps).any(-1)
         blo = torch.minimum(lo[a], lo[b])
         bhi = torch.maximum(hi[a], hi[b])
         overlap = ((plo[None] < bhi[:, None] - eps) & (phi[None] > blo[:, None] + eps)).all(-1)
@@ -73,27 +73,36 @@ def blocker_candidates(sc: Scene, dom: Tensor, tgt: Tensor, eps: float) -> Tenso
         reach = (g_centre[None] - closest).norm(dim=-1) <= (
             torch.maximum(radius[a], radius[b])[:, None] + g_radius[None] + eps
         )
-        need[s : s + chunk] = (straddle & overlap & reach).any(-1)
+        cand = straddle & overlap & reach  # [c, planes]
+        ci, gi = torch.nonzero(cand, as_tuple=True)
+        if ci.numel():  # ... and where the rays cross the plane
+            cand[ci, gi] = _section_meets_box(pts[ci], d[ci, gi], eps, (plo[gi], phi[gi]), (e1[gi], e2[gi], rect[gi]))
+        need[s : s + chunk] = cand.any(-1)
     return need
 
 
-def _section_meets_box(pts: Tensor, d: Tensor, eps: float, plo: Tensor, phi: Tensor) -> Tensor:
-    """Whether the bounding box of each plane's cross-section of each pair's convex hull (the hull of the corners
-    on the plane and of the crossings of the segments between corners on opposite sides; ``pts [c, 8, 3]``, signed
-    distances ``d [c, G, 8]``) reaches the plane group's box ``plo, phi [G, 3]`` within ``eps``: every ray between
-    the two facets crosses the plane inside it. Bool ``[c, G]``."""
-    di, dj = d[..., :, None], d[..., None, :]  # [c, G, 8, 1], [c, G, 1, 8]
-    cross = (di > eps) & (dj < -eps)  # [c, G, 8, 8]
+def _section_meets_box(pts: Tensor, d: Tensor, eps: float, box: tuple[Tensor, Tensor],
+                       frame: tuple[Tensor, Tensor, Tensor]) -> Tensor:
+    """Whether a plane's cross-section of a pair's convex hull can meet the plane's group of facets, per entry:
+    the bounding box of the cross-section (the hull of the corners on the plane and of the crossings of the
+    segments between corners on opposite sides; corners ``pts [M, 8, 3]``, signed distances ``d [M, 8]``) reaches
+    the group's box ``box = (lo, hi)``, each ``[M, 3]``, and its bounding rectangle in the plane's axes reaches the
+    group's (``frame = (e1, e2, rect)``: ``[M, 3]``, ``[M, 3]``, ``[M, 4]``), within ``eps``. Every ray between the
+    two facets crosses the plane inside the cross-section. Bool ``[M]``."""
+    di, dj = d[:, :, None], d[:, None, :]  # [M, 8, 1], [M, 1, 8]
+    cross = (di > eps) & (dj < -eps)  # [M, 8, 8]
     t = di / torch.where(cross, di - dj, torch.ones_like(di - dj))
-    pi, pj = pts[:, None, :, None, :], pts[:, None, None, :, :]  # [c, 1, 8, 1, 3], [c, 1, 1, 8, 3]
-    x = pi + t[..., None] * (pj - pi)  # [c, G, 8, 8, 3]
-    on = d.abs() <= eps  # [c, G, 8]
-    inf = torch.tensor(math.inf, dtype=pts.dtype)
-    onp = pts[:, None].expand(-1, d.shape[1], -1, -1)  # [c, G, 8, 3]
-    lo = torch.minimum(torch.where(cross[..., None], x, inf).amin((2, 3)), torch.where(on[..., None], onp, inf).amin(2))
-    hi = torch.maximum(torch.where(cross[..., None], x, -inf).amax((2, 3)),
-                       torch.where(on[..., None], onp, -inf).amax(2))
-    return ((plo[None] <= hi + eps) & (phi[None] >= lo - eps)).all(-1)
+    pi, pj = pts[:, :, None, :], pts[:, None, :, :]
+    x = torch.cat([(pi + t[..., None] * (pj - pi)).flatten(1, 2), pts], dim=1)  # [M, 72, 3]
+    inside = torch.cat([cross.flatten(1, 2), d.abs() <= eps], dim=1)[..., None]  # [M, 72, 1]
+    e1, e2, rect = frame
+    uv = torch.stack([(x * e1[:, None, :]).sum(-1), (x * e2[:, None, :]).sum(-1)], dim=-1)  # [M, 72, 2]
+    ok = torch.ones(d.shape[0], dtype=torch.bool)
+    for pos, (glo, ghi) in ((x, box), (uv, (rect[:, 0::2], rect[:, 1::2]))):
+        lo = torch.where(inside, pos, math.inf).amin(1)
+        hi = torch.where(inside, pos, -math.inf).amax(1)
+        ok &= ((glo <= hi + eps) & (ghi >= lo - eps)).all(-1)
+    return ok
 
 
 def check_visibility_options(samples: Any, tol: Any, angle: Any, jitter: Any = True) -> None:

@@ -184,9 +184,13 @@ def plane_eps(scene: Scene) -> float:
     return size * max(1e-9, 16.0 * torch.finfo(scene.dtype).eps)
 
 
-def plane_groups(sc: Scene, eps: float) -> tuple[Tensor, Tensor, Tensor, Tensor] | None:
+def plane_groups(sc: Scene, eps: float, frames: bool = False) -> tuple[Tensor, ...] | None:
     """The planes of the scene's coplanar facet groups that could block anything: normal ``[G, 3]``, offset
-    ``[G]`` and the group's bounding box ``lo, hi [G, 3]``; None when no plane has corners on both sides."""
+    ``[G]`` and the group's bounding box ``lo, hi [G, 3]``; None when no plane has corners on both sides.
+
+    With ``frames``, also in-plane axes ``e1, e2 [G, 3]`` (``e1`` along the first edge of the group's first facet,
+    ``e2 = n × e1``) and the group's bounding rectangle in them, ``(min e1·x, max e1·x, min e2·x, max e2·x)``
+    ``[G, 4]``: tight around the rectangular faces of a rotated box, where the axis-aligned box is not."""
     corners, normals, cent = sc.corners, sc.normals, sc.centroids
     offs = (normals * cent).sum(-1)
     size = float((corners.reshape(-1, 3).max(0).values - corners.reshape(-1, 3).min(0).values).norm())
@@ -210,7 +214,22 @@ def plane_groups(sc: Scene, eps: float) -> tuple[Tensor, Tensor, Tensor, Tensor]
     useful = (dall > eps).any(0) & (dall < -eps).any(0)
     if not bool(useful.any()):
         return None
-    return pn[useful], po[useful], plo[useful], phi[useful]
+    if not frames:
+        return pn[useful], po[useful], plo[useful], phi[useful]
+    edge = corners[first, 1] - corners[first, 0]
+    e1 = edge - (edge * pn).sum(-1, keepdim=True) * pn
+    e1 = e1 / e1.norm(dim=-1, keepdim=True).clamp_min(1e-300)
+    e2 = torch.cross(pn, e1, dim=-1)
+    rect = []
+    for axis in (e1, e2):
+        along = (corners.reshape(-1, 4, 3) * axis[plane_of][:, None, :]).sum(-1)  # [F, 4]
+        idx = plane_of[:, None].expand(-1, 4).reshape(-1)
+        rect.append(torch.full((n_planes,), math.inf, dtype=along.dtype).scatter_reduce_(0, idx, along.reshape(-1),
+                                                                                           "amin"))
+        rect.append(torch.full((n_planes,), -math.inf, dtype=along.dtype).scatter_reduce_(0, idx, along.reshape(-1),
+                                                                                            "amax"))
+    box2 = torch.stack(rect, dim=1)
+    return pn[useful], po[useful], plo[useful], phi[useful], e1[useful], e2[useful], box2[useful]
 
 
 def facet_samples(corners: Tensor, n: int) -> tuple[Tensor, Tensor]:
