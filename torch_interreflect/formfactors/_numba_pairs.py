@@ -159,7 +159,7 @@ def _grow(box, x0, x1, x2, e1, e2):
     box[8], box[9] = min(box[8], v), max(box[9], v)
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _section_meets_box(corners, a, b, dd, eps, glo, ghi, e1, e2, rect, box):
     """Whether the cross-section of the pair's convex hull with a plane (the corners' signed distances ``dd [8]``:
     ``a``'s corners, then ``b``'s) can meet the plane group: its bounding box reaches the group's box ``glo, ghi
