@@ -48,3 +48,24 @@ def test_form_factors_cast_rays_on_the_callers_threads(monkeypatch):
         torch.set_num_threads(prev)
     assert K.info["rays"] > 0 and seen and set(seen) == {2}
     assert np.isfinite(K.to_dense().numpy()).all()
+
+
+def test_only_the_compiled_path_runs_torch_serially(monkeypatch):
+    """backend="torch" (and scenes off the CPU, or without numba) keep torch's threads: its quadrature is torch."""
+    import contextlib
+
+    from torch_interreflect.formfactors import quadrature
+
+    entered = []
+
+    @contextlib.contextmanager
+    def spy():
+        entered.append(True)
+        yield 1
+
+    monkeypatch.setattr(quadrature, "serial_torch", spy)
+    scene = ti.scenes.v_groove(60.0, divisions=2)
+    ti.form_factors(scene, backend="torch")
+    assert not entered
+    ti.form_factors(scene)
+    assert entered == [True]

@@ -149,50 +149,51 @@ def classify(corners, normals, cent, diam, radius, dom, tgt, eps, digits, rho, o
 
 
 @njit(cache=True, inline="always")
-def _grow(box, x0, x1, x2, e1, e2):
-    """Grow ``box`` (xyz lo, xyz hi, then e1 lo / hi, e2 lo / hi) by the point ``x``."""
-    u = x0 * e1[0] + x1 * e1[1] + x2 * e1[2]
-    v = x0 * e2[0] + x1 * e2[1] + x2 * e2[2]
-    box[0], box[1], box[2] = min(box[0], x0), min(box[1], x1), min(box[2], x2)
-    box[3], box[4], box[5] = max(box[3], x0), max(box[4], x1), max(box[5], x2)
-    box[6], box[7] = min(box[6], u), max(box[7], u)
-    box[8], box[9] = min(box[8], v), max(box[9], v)
+def _corner(corners, a, b, i, k, e1, e2):
+    """Coordinate ``k`` of the pair's corner ``i`` (``a``'s four, then ``b``'s): x, y, z, then along ``e1``, ``e2``."""
+    f = a if i < 4 else b
+    c = i % 4
+    if k < 3:
+        return corners[f, c, k]
+    e = e1 if k == 3 else e2
+    return corners[f, c, 0] * e[0] + corners[f, c, 1] * e[1] + corners[f, c, 2] * e[2]
 
 
 @njit(cache=True, inline="always")
-def _section_meets_box(corners, a, b, dd, eps, glo, ghi, e1, e2, rect, box):
+def _section_meets_box(corners, a, b, dd, eps, glo, ghi, e1, e2, rect, pos):
     """Whether the cross-section of the pair's convex hull with a plane (the corners' signed distances ``dd [8]``:
     ``a``'s corners, then ``b``'s) can meet the plane group: its bounding box reaches the group's box ``glo, ghi
     [3]`` and its bounding rectangle in the plane's axes ``e1, e2`` reaches the group's ``rect [4]`` (within
-    ``eps``). ``box [10]``: scratch.
+    ``eps``). ``pos [8, 5]``: scratch.
 
     The cross-section of the hull of finitely many points is the hull of the points on the plane and of the
     crossings of the segments between points on opposite sides. Every ray between the two facets lies in the hull,
-    so it crosses the plane inside the cross-section: a group of facets on the plane outside it blocks none.
+    so it crosses the plane inside the cross-section: a group of facets on the plane outside it blocks none. The
+    crossings' coordinates (x, y, z and along the plane's axes, which are linear) are interpolated from the corners'.
     """
-    for k in range(10):
-        box[k] = math.inf if k in (0, 1, 2, 6, 8) else -math.inf
     for i in range(8):
-        fi = a if i < 4 else b
-        ki = i % 4
-        di = dd[i]
-        if abs(di) <= eps:
-            _grow(box, corners[fi, ki, 0], corners[fi, ki, 1], corners[fi, ki, 2], e1, e2)
-        elif di > eps:
-            for j in range(8):
-                dj = dd[j]
-                if dj < -eps:
-                    fj = a if j < 4 else b
-                    kj = j % 4
-                    t = di / (di - dj)
-                    _grow(box, corners[fi, ki, 0] + t * (corners[fj, kj, 0] - corners[fi, ki, 0]),
-                          corners[fi, ki, 1] + t * (corners[fj, kj, 1] - corners[fi, ki, 1]),
-                          corners[fi, ki, 2] + t * (corners[fj, kj, 2] - corners[fi, ki, 2]), e1, e2)
-    for x in range(3):
-        if glo[x] > box[3 + x] + eps or ghi[x] < box[x] - eps:
+        for k in range(5):
+            pos[i, k] = _corner(corners, a, b, i, k, e1, e2)
+    for k in range(5):
+        lo = math.inf
+        hi = -math.inf
+        for i in range(8):
+            di = dd[i]
+            if abs(di) <= eps:
+                lo = min(lo, pos[i, k])
+                hi = max(hi, pos[i, k])
+            elif di > eps:
+                for j in range(8):
+                    dj = dd[j]
+                    if dj < -eps:
+                        x = pos[i, k] + di / (di - dj) * (pos[j, k] - pos[i, k])
+                        lo = min(lo, x)
+                        hi = max(hi, x)
+        g_lo = glo[k] if k < 3 else rect[2 * (k - 3)]
+        g_hi = ghi[k] if k < 3 else rect[2 * (k - 3) + 1]
+        if g_lo > hi + eps or g_hi < lo - eps:
             return False
-    return (rect[0] <= box[7] + eps and rect[1] >= box[6] - eps and rect[2] <= box[9] + eps
-            and rect[3] >= box[8] - eps)
+    return True
 
 
 #: pairs per block of :func:`blockers` (scratch allocated once per block)
@@ -207,7 +208,7 @@ def blockers(corners, cent, lo, hi, radius, pn, po, plo, phi, e1, e2, rect, g_ce
     G = pn.shape[0]
     for blk in prange((P + _BLOCKER_BLOCK - 1) // _BLOCKER_BLOCK):
         dd = np.empty(8)
-        box = np.empty(10)
+        pos = np.empty((8, 5))
         for p in range(blk * _BLOCKER_BLOCK, min(P, (blk + 1) * _BLOCKER_BLOCK)):
             a = dom[p]
             b = tgt[p]
@@ -246,7 +247,7 @@ def blockers(corners, cent, lo, hi, radius, pn, po, plo, phi, e1, e2, rect, g_ce
                     below |= d < -eps
                 # ... and the rays' crossings of the plane can reach the group's box
                 if above and below and _section_meets_box(corners, a, b, dd, eps, plo[g], phi[g], e1[g], e2[g],
-                                                          rect[g], box):
+                                                          rect[g], pos):
                     found = True
                     break
             need[p] = found

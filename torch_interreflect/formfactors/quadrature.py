@@ -17,6 +17,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import time
 from typing import Any, Literal
 
@@ -175,7 +176,10 @@ def form_factors(
         rows, cols, vals, info = monte_carlo(scene, rays_per_facet, generator)
     else:
         itemsize = torch.empty(0, dtype=scene.dtype).element_size()
-        with serial_torch():  # compiled loops and rays keep every thread; torch's spinning workers stay asleep
+        # with the compiled loops, torch's spinning workers stay asleep and the loops and rays keep every thread;
+        # the torch path keeps torch's threads
+        compiled = backend != "torch" and loops() is not None and scene.device.type == "cpu"
+        with serial_torch() if compiled else contextlib.nullcontext():
             rows, cols, vals, info = _quadrature(
                 scene, occlusion, quadrature_tol, adjacent_order, visibility_samples, chunk_points, progress,
                 output=(layout, itemsize), backend=backend, visibility_tol=visibility_tol,

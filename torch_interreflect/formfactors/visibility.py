@@ -88,20 +88,27 @@ def _section_meets_box(pts: Tensor, d: Tensor, eps: float, box: tuple[Tensor, Te
     segments between corners on opposite sides; corners ``pts [M, 8, 3]``, signed distances ``d [M, 8]``) reaches
     the group's box ``box = (lo, hi)``, each ``[M, 3]``, and its bounding rectangle in the plane's axes reaches the
     group's (``frame = (e1, e2, rect)``: ``[M, 3]``, ``[M, 3]``, ``[M, 4]``), within ``eps``. Every ray between the
-    two facets crosses the plane inside the cross-section. Bool ``[M]``."""
-    di, dj = d[:, :, None], d[:, None, :]  # [M, 8, 1], [M, 1, 8]
-    cross = (di > eps) & (dj < -eps)  # [M, 8, 8]
-    t = di / torch.where(cross, di - dj, torch.ones_like(di - dj))
-    pi, pj = pts[:, :, None, :], pts[:, None, :, :]
-    x = torch.cat([(pi + t[..., None] * (pj - pi)).flatten(1, 2), pts], dim=1)  # [M, 72, 3]
-    inside = torch.cat([cross.flatten(1, 2), d.abs() <= eps], dim=1)[..., None]  # [M, 72, 1]
+    two facets crosses the plane inside the cross-section. The crossings' coordinates (x, y, z, then along the
+    axes, which are linear) are interpolated from the corners', as in the compiled loop. Bool ``[M]``."""
     e1, e2, rect = frame
-    uv = torch.stack([(x * e1[:, None, :]).sum(-1), (x * e2[:, None, :]).sum(-1)], dim=-1)  # [M, 72, 2]
-    ok = torch.ones(d.shape[0], dtype=torch.bool)
-    for pos, (glo, ghi) in ((x, box), (uv, (rect[:, 0::2], rect[:, 1::2]))):
-        lo = torch.where(inside, pos, math.inf).amin(1)
-        hi = torch.where(inside, pos, -math.inf).amax(1)
-        ok &= ((glo <= hi + eps) & (ghi >= lo - eps)).all(-1)
+    pos = torch.cat([pts, (pts * e1[:, None, :]).sum(-1, keepdim=True), (pts * e2[:, None, :]).sum(-1, keepdim=True)],
+                    dim=-1)  # [M, 8, 5]
+    glo = torch.cat([box[0], rect[:, 0::2]], dim=-1)
+    ghi = torch.cat([box[1], rect[:, 1::2]], dim=-1)
+    ok = torch.empty(d.shape[0], dtype=torch.bool)
+    step = 1 << 13  # entries per step: the [step, 8, 8, 5] temporaries stay in cache
+    for s in range(0, d.shape[0], step):
+        dd, p = d[s : s + step], pos[s : s + step]
+        di, dj = dd[:, :, None], dd[:, None, :]
+        cross = (di > eps) & (dj < -eps)  # [m, 8, 8]
+        t = di / torch.where(cross, di - dj, torch.ones_like(di))
+        x = p[:, :, None, :] + t[..., None] * (p[:, None, :, :] - p[:, :, None, :])  # [m, 8, 8, 5]
+        on = (dd.abs() <= eps)[..., None]
+        lo = torch.minimum(torch.where(cross[..., None], x, math.inf).amin((1, 2)),
+                           torch.where(on, p, math.inf).amin(1))
+        hi = torch.maximum(torch.where(cross[..., None], x, -math.inf).amax((1, 2)),
+                           torch.where(on, p, -math.inf).amax(1))
+        ok[s : s + step] = ((glo[s : s + step] <= hi + eps) & (ghi[s : s + step] >= lo - eps)).all(-1)
     return ok
 
 
