@@ -19,8 +19,6 @@ from types import ModuleType
 
 import torch
 
-from .._threads import loop_threads
-
 __all__ = ["launch", "loops"]
 
 _MODULES = {"quadrature": "._numba_kernels", "pairs": "._numba_pairs", "visibility": "._numba_visibility",
@@ -66,7 +64,7 @@ def launch(kernel: Callable[..., object], *args: object) -> object:
     prev = torch.get_num_threads()
     with _LAUNCH:
         try:
-            numba.set_num_threads(max(1, min(loop_threads(), numba.config.NUMBA_NUM_THREADS)))
+            numba.set_num_threads(max(1, min(prev, numba.config.NUMBA_NUM_THREADS)))
             return kernel(*args)
         finally:
             torch.set_num_threads(prev)

@@ -17,7 +17,6 @@
 
 from __future__ import annotations
 
-import contextlib
 import time
 from typing import Any, Literal
 
@@ -27,7 +26,6 @@ from tqdm.auto import tqdm
 
 from .._deprecation import renamed_keywords
 from .._sparse import sparse_matrix
-from .._threads import serial_torch
 from ..errors import ValueRangeError
 from ..geometry._polygon import (
     clip_polygons,
@@ -176,16 +174,12 @@ def form_factors(
         rows, cols, vals, info = monte_carlo(scene, rays_per_facet, generator)
     else:
         itemsize = torch.empty(0, dtype=scene.dtype).element_size()
-        # with the compiled loops, torch's spinning workers stay asleep and the loops and rays keep every thread;
-        # the torch path keeps torch's threads
-        compiled = backend != "torch" and loops() is not None and scene.device.type == "cpu"
-        with serial_torch() if compiled else contextlib.nullcontext():
-            rows, cols, vals, info = _quadrature(
-                scene, occlusion, quadrature_tol, adjacent_order, visibility_samples, chunk_points, progress,
-                output=(layout, itemsize), backend=backend, visibility_tol=visibility_tol,
-                visibility_angle=visibility_angle, visibility_jitter=visibility_jitter,
-                visibility_grad_points=visibility_grad_points,
-            )
+        rows, cols, vals, info = _quadrature(
+            scene, occlusion, quadrature_tol, adjacent_order, visibility_samples, chunk_points, progress,
+            output=(layout, itemsize), backend=backend, visibility_tol=visibility_tol,
+            visibility_angle=visibility_angle, visibility_jitter=visibility_jitter,
+            visibility_grad_points=visibility_grad_points,
+        )
     info["max_row_sum"] = check_row_sums(rows, vals, F, quadrature_tol, method, occlusion, info.get("occluded_facets"))
     out_dtype, dev = scene.dtype, scene.device
     matrix, layout = assemble(rows, cols, vals, F, layout, out_dtype)

@@ -12,8 +12,8 @@ from concurrent.futures import ThreadPoolExecutor
 from functools import cache
 
 import numpy as np
+import torch
 
-from .._threads import loop_threads
 from .scene import Scene
 
 __all__ = ["RayCaster"]
@@ -34,7 +34,7 @@ os.register_at_fork(after_in_child=_pool.cache_clear)
 
 def _run_split(run, n_rays: int, *arrays: np.ndarray) -> np.ndarray:
     """``run(*arrays)`` over the rays, split into contiguous blocks across threads; results concatenated."""
-    n = min(loop_threads(), max(1, n_rays // _MIN_RAYS_PER_THREAD))
+    n = min(torch.get_num_threads(), max(1, n_rays // _MIN_RAYS_PER_THREAD))
     if n <= 1:
         return np.asarray(run(*arrays))
     bounds = np.linspace(0, n_rays, n + 1).astype(np.int64)
