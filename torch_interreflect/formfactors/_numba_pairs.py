@@ -160,16 +160,17 @@ def _corner(corners, a, b, i, k, e1, e2):
 
 
 @njit(cache=True, inline="always")
-def _section_meets_box(corners, a, b, dd, eps, glo, ghi, e1, e2, rect, pos):
-    """Whether the cross-section of the pair's convex hull with a plane (the corners' signed distances ``dd [8]``:
-    ``a``'s corners, then ``b``'s) can meet the plane group: its bounding box reaches the group's box ``glo, ghi
-    [3]`` and its bounding rectangle in the plane's axes ``e1, e2`` reaches the group's ``rect [4]`` (within
-    ``eps``). ``pos [8, 5]``: scratch.
+def _section_meets_box(corners, a, b, dd, half, eps, glo, ghi, e1, e2, rect, pos):
+    """Whether the part of the pair's convex hull within ``half`` of a plane (the corners' signed distances
+    ``dd [8]``: ``a``'s corners, then ``b``'s) can meet the plane group: its bounding box reaches the group's box
+    ``glo, ghi [3]`` and its bounding rectangle in the plane's axes ``e1, e2`` reaches the group's ``rect [4]``
+    (within ``eps``). ``pos [8, 5]``: scratch.
 
-    The cross-section of the hull of finitely many points is the hull of the points on the plane and of the
-    crossings of the segments between points on opposite sides. Every ray between the two facets lies in the hull,
-    so it crosses the plane inside the cross-section: a group of facets on the plane outside it blocks none. The
-    crossings' coordinates (x, y, z and along the plane's axes, which are linear) are interpolated from the corners'.
+    The hull's part in the slab ``|d| ≤ half`` is the hull of the corners inside it and of the crossings of the
+    segments between corners with its two faces. Every ray between the two facets lies in the hull, so where it
+    meets a member of the group (all within ``half`` of the plane) lies in that part: a group outside its box
+    blocks nothing. The crossings' coordinates (x, y, z and along the plane's axes, which are linear) are
+    interpolated from the corners'.
     """
     for i in range(8):
         for k in range(5):
@@ -179,14 +180,14 @@ def _section_meets_box(corners, a, b, dd, eps, glo, ghi, e1, e2, rect, pos):
         hi = -math.inf
         for i in range(8):
             di = dd[i]
-            if abs(di) <= eps:
+            if abs(di) <= half:
                 lo = min(lo, pos[i, k])
                 hi = max(hi, pos[i, k])
-            elif di > eps:
-                for j in range(8):
-                    dj = dd[j]
-                    if dj < -eps:
-                        x = pos[i, k] + di / (di - dj) * (pos[j, k] - pos[i, k])
+            for j in range(8):
+                dj = dd[j]
+                for c in (half, -half):
+                    if di > c > dj:
+                        x = pos[i, k] + (di - c) / (di - dj) * (pos[j, k] - pos[i, k])
                         lo = min(lo, x)
                         hi = max(hi, x)
         g_lo = glo[k] if k < 3 else rect[2 * (k - 3)]
@@ -201,7 +202,8 @@ _BLOCKER_BLOCK = 256
 
 
 @njit(cache=True, parallel=True)
-def blockers(corners, cent, lo, hi, radius, pn, po, plo, phi, e1, e2, rect, g_centre, g_radius, dom, tgt, eps, need):
+def blockers(corners, cent, lo, hi, radius, pn, po, plo, phi, e1, e2, rect, thick, g_centre, g_radius, dom, tgt, eps,
+             need):
     """``need[p]``: some plane group could block pair ``(dom, tgt)`` (see
     :func:`.visibility.blocker_candidates`)."""
     P = dom.shape[0]
@@ -234,20 +236,21 @@ def blockers(corners, cent, lo, hi, radius, pn, po, plo, phi, e1, e2, rect, g_ce
                 if _dist(g_centre[g, 0], g_centre[g, 1], g_centre[g, 2], ca0 + t * s0, ca1 + t * s1,
                          ca2 + t * s2) > rr + g_radius[g] + eps:
                     continue
-                # the group's plane strictly separates corners of the pair
-                above = False
-                below = False
+                # some member's plane (all within thick of the group's) strictly separates corners of the pair
+                dmin = math.inf
+                dmax = -math.inf
                 for i in range(8):
                     f = a if i < 4 else b
                     k = i % 4
                     d = (corners[f, k, 0] * pn[g, 0] + corners[f, k, 1] * pn[g, 1]
                          + corners[f, k, 2] * pn[g, 2]) - po[g]
                     dd[i] = d
-                    above |= d > eps
-                    below |= d < -eps
-                # ... and the rays' crossings of the plane can reach the group's box
-                if above and below and _section_meets_box(corners, a, b, dd, eps, plo[g], phi[g], e1[g], e2[g],
-                                                          rect[g], pos):
+                    dmin = min(dmin, d)
+                    dmax = max(dmax, d)
+                split = dmax > -thick[g] + eps and dmin < thick[g] - eps and dmax - dmin > 2 * eps
+                # ... and the rays' crossings of the group's slab can reach its box
+                if split and _section_meets_box(corners, a, b, dd, thick[g] + eps, eps, plo[g], phi[g], e1[g],
+                                                e2[g], rect[g], pos):
                     found = True
                     break
             need[p] = found

@@ -189,8 +189,10 @@ def plane_groups(sc: Scene, eps: float, frames: bool = False) -> tuple[Tensor, .
     ``[G]`` and the group's bounding box ``lo, hi [G, 3]``; None when no plane has corners on both sides.
 
     With ``frames``, also in-plane axes ``e1, e2 [G, 3]`` (``e1`` along the first edge of the group's first facet,
-    ``e2 = n × e1``) and the group's bounding rectangle in them, ``(min e1·x, max e1·x, min e2·x, max e2·x)``
-    ``[G, 4]``: tight around the rectangular faces of a rotated box, where the axis-aligned box is not."""
+    ``e2 = n × e1``), the group's bounding rectangle in them, ``(min e1·x, max e1·x, min e2·x, max e2·x)``
+    ``[G, 4]`` (tight around the rectangular faces of a rotated box, where the axis-aligned box is not), and its
+    thickness ``[G]``: the largest distance of a member's corner from the plane (members are grouped by rounded
+    normals and offsets, so they may lie off the first member's plane by up to ~``1e-4`` of the scene's size)."""
     corners, normals, cent = sc.corners, sc.normals, sc.centroids
     offs = (normals * cent).sum(-1)
     size = float((corners.reshape(-1, 3).max(0).values - corners.reshape(-1, 3).min(0).values).norm())
@@ -229,7 +231,10 @@ def plane_groups(sc: Scene, eps: float, frames: bool = False) -> tuple[Tensor, .
         rect.append(torch.full((n_planes,), -math.inf, dtype=along.dtype).scatter_reduce_(0, idx, along.reshape(-1),
                                                                                             "amax"))
     box2 = torch.stack(rect, dim=1)
-    return pn[useful], po[useful], plo[useful], phi[useful], e1[useful], e2[useful], box2[useful]
+    off = ((corners.reshape(-1, 4, 3) * pn[plane_of][:, None, :]).sum(-1) - po[plane_of][:, None]).abs()  # [F, 4]
+    thick = torch.zeros(n_planes, dtype=off.dtype).scatter_reduce_(0, plane_of, off.amax(1), "amax")
+    return (pn[useful], po[useful], plo[useful], phi[useful], e1[useful], e2[useful], box2[useful],
+            thick[useful])
 
 
 def facet_samples(corners: Tensor, n: int) -> tuple[Tensor, Tensor]:
