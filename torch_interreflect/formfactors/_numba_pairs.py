@@ -356,3 +356,30 @@ def scatter_dense(rows, cols, vals, mat):
     for b in prange(nb):
         for n in range(b * _ENTRY_BLOCK, min(N, (b + 1) * _ENTRY_BLOCK)):
             mat[rows[n], cols[n]] = vals[n]
+
+
+@njit(cache=True, parallel=True)
+def dense_entries(areas, dom, tgt, value, mat, sums):
+    """Both directions of the pairs with ``value > 0`` written straight into the dense matrix ``mat`` (cast to its
+    dtype): ``mat[dom, tgt] = value / A_dom``, ``mat[tgt, dom] = value / A_tgt``; ``sums [nb, F]`` (zeros, ``nb``
+    blocks of pairs) receives each block's float64 row sums. Returns the entries written."""
+    P = dom.shape[0]
+    nb = sums.shape[0]
+    per = (P + nb - 1) // nb
+    counts = np.zeros(nb, dtype=np.int64)
+    for b in prange(nb):
+        c = 0
+        for p in range(b * per, min(P, (b + 1) * per)):
+            v = value[p]
+            if v > 0:
+                a = dom[p]
+                t = tgt[p]
+                x = v / areas[a]
+                y = v / areas[t]
+                mat[a, t] = x
+                mat[t, a] = y
+                sums[b, a] += x
+                sums[b, t] += y
+                c += 2
+        counts[b] = c
+    return counts.sum()

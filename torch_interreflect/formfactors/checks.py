@@ -13,7 +13,7 @@ from ..errors import GeometryError, GeometryWarning
 from ..geometry._polygon import facing_matrix
 from ..geometry.scene import Scene
 
-__all__ = ["OCCLUDED_ROW_SLACK", "ROW_SUM_SLACK", "check_row_sums", "warn_if_wrong_side"]
+__all__ = ["OCCLUDED_ROW_SLACK", "ROW_SUM_SLACK", "check_row_sums", "check_sums", "warn_if_wrong_side"]
 
 #: A row may exceed 1 by this many times ``quadrature_tol`` (the quadrature's error on a closed row: measured
 #: below 1e-8 at the default 1e-6).
@@ -36,6 +36,14 @@ def check_row_sums(
     if rows.numel() == 0:
         return 0.0
     sums = torch.zeros(F, dtype=torch.float64).index_add_(0, rows, vals.detach())
+    return check_sums(sums, quadrature_tol, method, occlusion, occluded)
+
+
+def check_sums(sums: Tensor, quadrature_tol: float, method: str, occlusion: Any, occluded: Any) -> float:
+    """:func:`check_row_sums` for row sums already summed (float64 ``[F]``)."""
+    F = sums.numel()
+    if F == 0:
+        return 0.0
     if method != "quadrature" or occlusion is False:
         return float(sums.max())
     limit = torch.full((F,), 1.0 + max(ROW_SUM_SLACK * quadrature_tol, 1e-12), dtype=torch.float64)

@@ -20,6 +20,7 @@ from __future__ import annotations
 import time
 from typing import Any, Literal
 
+import numpy as np
 import torch
 from torch import Tensor
 from tqdm.auto import tqdm
@@ -33,7 +34,7 @@ from ..geometry._polygon import (
     rotate_to_plane_edge,
 )
 from ..geometry.scene import Scene
-from .checks import check_row_sums, warn_if_wrong_side
+from .checks import check_row_sums, check_sums, warn_if_wrong_side
 from .compiled import launch, loops
 from .fused import Backend, fan_sums, group_sums, grouped_sums
 from .montecarlo import monte_carlo
@@ -174,16 +175,26 @@ def form_factors(
         rows, cols, vals, info = monte_carlo(scene, rays_per_facet, generator)
     else:
         itemsize = torch.empty(0, dtype=scene.dtype).element_size()
-        rows, cols, vals, info = _quadrature(
+        dom, tgt, value, areas, info = _quadrature(
             scene, occlusion, quadrature_tol, adjacent_order, visibility_samples, chunk_points, progress,
             output=(layout, itemsize), backend=backend, visibility_tol=visibility_tol,
             visibility_angle=visibility_angle, visibility_jitter=visibility_jitter,
             visibility_grad_points=visibility_grad_points,
         )
-    info["max_row_sum"] = check_row_sums(rows, vals, F, quadrature_tol, method, occlusion, info.get("occluded_facets"))
     out_dtype, dev = scene.dtype, scene.device
-    matrix, layout = assemble(rows, cols, vals, F, layout, out_dtype)
-    info.update(method=method, seconds=time.perf_counter() - t0, layout=layout, nnz=int(rows.numel()))
+    direct = None
+    if method == "quadrature":  # dense output: written straight from the pairs where it can be
+        direct = _dense_direct(dom, tgt, value, areas, layout, out_dtype, (quadrature_tol, occlusion, info))
+        if direct is None:
+            rows, cols, vals = pair_entries(areas, dom, tgt, value)
+    if direct is not None:
+        (matrix, nnz), layout = direct, "dense"
+    else:
+        info["max_row_sum"] = check_row_sums(rows, vals, F, quadrature_tol, method, occlusion,
+                                             info.get("occluded_facets"))
+        matrix, layout = assemble(rows, cols, vals, F, layout, out_dtype)
+        nnz = int(rows.numel())
+    info.update(method=method, seconds=time.perf_counter() - t0, layout=layout, nnz=nnz)
     if method == "quadrature":
         info["quadrature_tol"] = quadrature_tol  # the solver's closure-error bound reads it
     return FormFactors(matrix.to(dev), scene.areas.detach().to(out_dtype), info)
@@ -206,6 +217,29 @@ def _check_arguments(
         raise ValueError(f"backend must be 'auto', 'fused' or 'torch'; got {backend!r}")
 
 
+def _dense_direct(dom: Tensor, tgt: Tensor, value: Tensor, areas: Tensor, layout: str, dtype: torch.dtype,
+                  check: tuple[float, Any, dict]) -> tuple[Tensor, int] | None:
+    """The dense ``[F, F]`` matrix written straight from the pairs by a compiled loop (no ``[2P]`` entry lists),
+    with its row sums checked as :func:`~.checks.check_row_sums` does (``check = (quadrature_tol, occlusion,
+    info)``; sets ``info["max_row_sum"]``); None where the entries are needed (sparse output, autograd, no numba).
+    """
+    kern = loops("pairs")
+    F = areas.numel()
+    if kern is None or value.requires_grad or dtype not in (torch.float32, torch.float64) or layout == "sparse":
+        return None
+    nnz = 2 * int(torch.count_nonzero(value > 0))
+    if layout == "auto" and F > _DENSE_MAX_FACETS and nnz <= SPARSE_DENSITY * F * F:
+        return None
+    mat = torch.zeros(F, F, dtype=dtype)
+    blocks = max(1, min(4 * torch.get_num_threads(), (dom.numel() >> 14) + 1))
+    sums = np.zeros((blocks, F))
+    launch(kern.dense_entries, *(t.contiguous().numpy() for t in (areas, dom, tgt, value)), mat.numpy(), sums)
+    quadrature_tol, occlusion, info = check
+    info["max_row_sum"] = check_sums(torch.from_numpy(sums.sum(0)), quadrature_tol, "quadrature", occlusion,
+                                     info.get("occluded_facets"))
+    return mat, nnz
+
+
 def _quadrature(
     scene: Scene,
     occlusion: Literal["auto"] | bool,
@@ -220,7 +254,9 @@ def _quadrature(
     visibility_angle: float | None = VISIBILITY_ANGLE,
     visibility_jitter: bool = True,
     visibility_grad_points: int = 0,
-) -> tuple[Tensor, Tensor, Tensor, dict]:
+) -> tuple[Tensor, Tensor, Tensor, Tensor, dict]:
+    """``(dom, tgt, value, areas, info)``: the pairs, ``value = A_dom F_dom,tgt`` (m², clamped at 0), the facets'
+    float64 areas, and what was done (see :func:`form_factors`)."""
     sc = scene.to(torch.float64).to("cpu")
     F = sc.num_facets
     eps = plane_eps(scene)
@@ -234,7 +270,7 @@ def _quadrature(
         warn_if_wrong_side(sc, eps)
         empty = torch.zeros(0, dtype=torch.int64)
         info.update(points=0, rays=0, occluded_pairs=0, occluded_facets=torch.zeros(F, dtype=torch.bool))
-        return empty, empty, torch.zeros(0, dtype=torch.float64), info
+        return empty, empty, torch.zeros(0, dtype=torch.float64), sc.areas, info
 
     dom, tgt, value, need, vis = pair_values(
         sc, iu, ju, occlusion, tol, adjacent_order, visibility_samples, chunk_points, progress, info, eps,
@@ -248,7 +284,7 @@ def _quadrature(
     approx[tgt[need]] = True
     info.update(occluded_pairs=int(torch.count_nonzero(need)), rays=vis.rays if vis else 0, occluded_facets=approx)
 
-    return (*pair_entries(sc.areas, dom, tgt, value), info)
+    return dom, tgt, value, sc.areas, info
 
 
 def pair_entries(areas: Tensor, dom: Tensor, tgt: Tensor, value: Tensor) -> tuple[Tensor, Tensor, Tensor]:
