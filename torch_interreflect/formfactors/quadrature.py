@@ -227,13 +227,14 @@ def _dense_direct(dom: Tensor, tgt: Tensor, value: Tensor, areas: Tensor, layout
     F = areas.numel()
     if kern is None or value.requires_grad or dtype not in (torch.float32, torch.float64) or layout == "sparse":
         return None
-    nnz = 2 * int(torch.count_nonzero(value > 0))
-    if layout == "auto" and F > _DENSE_MAX_FACETS and nnz <= SPARSE_DENSITY * F * F:
+    # numpy here, not torch: a torch parallel region right before the launch leaves OpenMP workers spinning
+    if layout == "auto" and F > _DENSE_MAX_FACETS and 2 * np.count_nonzero(value.numpy() > 0) <= SPARSE_DENSITY * F * F:
         return None
-    mat = torch.zeros(F, F, dtype=dtype)
+    mat = torch.from_numpy(np.zeros((F, F), dtype=np.float32 if dtype == torch.float32 else np.float64))
     blocks = max(1, min(4 * torch.get_num_threads(), (dom.numel() >> 14) + 1))
     sums = np.zeros((blocks, F))
-    launch(kern.dense_entries, *(t.contiguous().numpy() for t in (areas, dom, tgt, value)), mat.numpy(), sums)
+    nnz = int(launch(kern.dense_entries, *(t.contiguous().numpy() for t in (areas, dom, tgt, value)), mat.numpy(),
+                     sums))
     quadrature_tol, occlusion, info = check
     info["max_row_sum"] = check_sums(torch.from_numpy(sums.sum(0)), quadrature_tol, "quadrature", occlusion,
                                      info.get("occluded_facets"))
