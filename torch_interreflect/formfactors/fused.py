@@ -1,10 +1,11 @@
 """The fused form-factor quadrature: Lambert's contour formula, horizon clipping and the per-pair Gauss sum in
 one compiled loop over pairs, on every core.
 
-:func:`group_sums` and :func:`fan_sums` give the same numbers as the torch quadrature of
-:func:`~torch_interreflect.formfactors.pair_values` (float64, to rounding), without its ~25 temporaries per
-point: on CPU through numba (``@njit(parallel=True)``, threads = ``torch.get_num_threads()``), elsewhere (a CUDA
-device) through the same maths in torch.
+:func:`grouped_sums` runs every unoccluded rule group in one launch (runs of equal point counts across the
+threads); :func:`group_sums` one rule, with visibility. They and :func:`fan_sums` give the same numbers as the
+torch quadrature of :func:`~torch_interreflect.formfactors.pair_values` (float64, to rounding), without its ~25
+temporaries per point: on CPU through numba (``@njit(parallel=True)``, threads = ``torch.get_num_threads()``),
+elsewhere (a CUDA device) through the same maths in torch.
 
 Gradients to the geometry: when an input requires grad (CPU), the domains, clipped targets and normals are gathered
 in torch (a graph of O(pairs) size) and the sums run through a compiled loop with a compiled, hand-written adjoint

@@ -1,9 +1,10 @@
 """Facet pairs of the quadrature: which pairs exchange light (culling), and how each is integrated
 (classification into shared-edge, shared-vertex, straddling and regular pairs, and the Gauss order of each).
 
-On the CPU both run as compiled loops over pairs (:mod:`._numba_pairs`, every core, no ``[F, F]`` or
-``[P, 4, 4]`` temporaries); elsewhere, or without numba (``TI_DISABLE_NUMBA=1``), in torch, which is the
-reference the loops follow (``tests/formfactors/test_pairs.py`` checks they agree).
+On the CPU both run as compiled loops over pairs (:mod:`._numba_pairs`, every core, no ``[P, 4, 4]``
+temporaries; the facing test fills one ``[F, F]`` bool mask in a single pass, then lists its pairs); elsewhere,
+or without numba (``TI_DISABLE_NUMBA=1``), in torch, which is the reference the loops follow
+(``tests/formfactors/test_pairs.py`` checks they agree).
 """
 
 from __future__ import annotations
