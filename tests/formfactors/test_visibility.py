@@ -252,3 +252,32 @@ def test_blocker_candidates_see_members_off_their_groups_plane():
     assert flat.numel() == 1 and float(groups[-1][flat[0]]) > 1e-4
     assert bool(visibility.blocker_candidates(sc.to(torch.float64), torch.tensor([2]), torch.tensor([3]), eps))
     assert float(ti.form_factors(sc).to_dense()[2, 3]) == 0.0
+
+
+@pytest.mark.parametrize(("angle", "jitter"), [(0.3, True), (None, True), (0.3, False)])
+def test_rule_fractions_equal_the_fractions_of_the_rules_points(angle, jitter):
+    """The rays built from the rule inside the compiled loop (no points in memory) give, bit for bit, what the
+    points of the rule give: on a Cornell box's blockable pairs with rotated domains and a graded rule."""
+    from torch_interreflect.formfactors import compiled, pairs
+    from torch_interreflect.formfactors.rules import quadrature_rule
+    from torch_interreflect.formfactors.visibility import blocker_candidates
+    from torch_interreflect.geometry._polygon import bilinear, plane_eps
+
+    if compiled.loops("visibility") is None:
+        pytest.skip("needs numba")
+    sc = ti.scenes.cornell_box(3).to(torch.float64)
+    eps = plane_eps(sc)
+    iu, ju = pairs.facing_pairs(sc, eps, ("dense", 8))
+    keep = blocker_candidates(sc, iu, ju, eps)
+    dom, tgt = iu[keep], ju[keep]
+    shift = torch.randint(0, 4, dom.shape, generator=torch.Generator().manual_seed(2))
+    u, v, _ = quadrature_rule("edge", 4, torch.float64, torch.device("cpu"))
+    idx = (torch.arange(4)[None, :] + shift[:, None]) % 4
+    quads = torch.gather(sc.corners[dom], 1, idx[..., None].expand(-1, -1, 3))
+    x, _ = bilinear(quads, u, v)
+    vis = PointVisibility(sc, 3, angle=angle, jitter=jitter)
+    ref = vis(x, dom, tgt)
+    rays = vis.rays
+    got = vis.rule_fractions(sc.corners, dom, tgt, shift, u, v)
+    assert 0.05 < float((ref < 1).double().mean()) < 0.95
+    assert torch.equal(got, ref) and vis.rays == 2 * rays

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 from numba import njit, prange
 
 from ._numba_geometry import bilinear_map, jacobian_norm
@@ -21,6 +22,48 @@ _G1 = 0.5698402909980532
 #: steps of a second Kronecker sequence (√2 − 1, √3 − 1)
 _H0 = 0.41421356237309515
 _H1 = 0.7320508075688772
+
+
+@njit(cache=True, inline="always")
+def _point_rays(p, q, Q, x0, x1, x2, na, c, nb, n, seed0, seed1, jitter, margin, eps, end_gap, origin, direction,
+                tfar, weight):
+    """The ``n × n`` rays of pair ``p``'s point ``q`` at ``x`` to the target quad ``c [4, 3]`` (see :func:`rays`);
+    ``na``, ``nb``: the domain's and the target's normals."""
+    S = n * n
+    for s in range(S):
+        iu = s // n
+        iv = s - iu * n
+        if jitter:
+            k = q * S + s + 1
+            a = seed0 + k * _G0
+            b = seed1 + k * _G1
+            xu = margin + (1.0 - 2.0 * margin) * (a - math.floor(a))
+            xv = margin + (1.0 - 2.0 * margin) * (b - math.floor(b))
+        else:
+            xu = 0.5
+            xv = 0.5
+        y0, y1, y2, du0, du1, du2, dv0, dv1, dv2 = bilinear_map(c, (iu + xu) / n, (iv + xv) / n)
+        area = jacobian_norm(du0, du1, du2, dv0, dv1, dv2) / S
+        r0 = y0 - x0
+        r1 = y1 - x1
+        r2 = y2 - x2
+        d2 = max(r0 * r0 + r1 * r1 + r2 * r2, 1e-30)
+        ca = max(r0 * na[0] + r1 * na[1] + r2 * na[2], 0.0)
+        cbk = max(-(r0 * nb[0] + r1 * nb[1] + r2 * nb[2]), 0.0)
+        weight[p, q, s] = ca * cbk / (d2 * d2) * area
+        length = math.sqrt(d2)
+        e0 = r0 / length
+        e1 = r1 / length
+        e2 = r2 / length
+        i = (p * Q + q) * S + s
+        gap = eps + end_gap * length
+        origin[i, 0] = x0 + gap * e0
+        origin[i, 1] = x1 + gap * e1
+        origin[i, 2] = x2 + gap * e2
+        direction[i, 0] = e0
+        direction[i, 1] = e1
+        direction[i, 2] = e2
+        tfar[i] = length - 2 * gap
 
 
 @njit(cache=True, parallel=True)
@@ -34,45 +77,45 @@ def rays(xs, na, cb, nb, n, seed, jitter, margin, eps, end_gap, origin, directio
     origin, direction ``[P·Q·S, 3]`` (float32), tfar ``[P·Q·S]`` (float32), weight ``[P, Q, S]`` (float64).
     """
     P, Q = xs.shape[0], xs.shape[1]
-    S = n * n
     for p in prange(P):
-        c = cb[p]
         for q in range(Q):
-            x0, x1, x2 = xs[p, q, 0], xs[p, q, 1], xs[p, q, 2]
-            for s in range(S):
-                iu = s // n
-                iv = s - iu * n
-                if jitter:
-                    k = q * S + s + 1
-                    a = seed[p, 0] + k * _G0
-                    b = seed[p, 1] + k * _G1
-                    xu = margin + (1.0 - 2.0 * margin) * (a - math.floor(a))
-                    xv = margin + (1.0 - 2.0 * margin) * (b - math.floor(b))
-                else:
-                    xu = 0.5
-                    xv = 0.5
-                y0, y1, y2, du0, du1, du2, dv0, dv1, dv2 = bilinear_map(c, (iu + xu) / n, (iv + xv) / n)
-                area = jacobian_norm(du0, du1, du2, dv0, dv1, dv2) / S
-                r0 = y0 - x0
-                r1 = y1 - x1
-                r2 = y2 - x2
-                d2 = max(r0 * r0 + r1 * r1 + r2 * r2, 1e-30)
-                ca = max(r0 * na[p, 0] + r1 * na[p, 1] + r2 * na[p, 2], 0.0)
-                cbk = max(-(r0 * nb[p, 0] + r1 * nb[p, 1] + r2 * nb[p, 2]), 0.0)
-                weight[p, q, s] = ca * cbk / (d2 * d2) * area
-                length = math.sqrt(d2)
-                e0 = r0 / length
-                e1 = r1 / length
-                e2 = r2 / length
-                i = (p * Q + q) * S + s
-                gap = eps + end_gap * length
-                origin[i, 0] = x0 + gap * e0
-                origin[i, 1] = x1 + gap * e1
-                origin[i, 2] = x2 + gap * e2
-                direction[i, 0] = e0
-                direction[i, 1] = e1
-                direction[i, 2] = e2
-                tfar[i] = length - 2 * gap
+            _point_rays(p, q, Q, xs[p, q, 0], xs[p, q, 1], xs[p, q, 2], na[p], cb[p], nb[p], n, seed[p, 0],
+                        seed[p, 1], jitter, margin, eps, end_gap, origin, direction, tfar, weight)
+
+
+#: pairs per block of :func:`rule_rays` (its scratch quad is allocated once per block)
+_RULE_BLOCK = 64
+
+
+@njit(cache=True, parallel=True)
+def rule_rays(corners, centre, dom, tgt, shift, u, v, normals, rel, n, jitter, margin, eps, end_gap, origin,
+              direction, tfar, weight):
+    """:func:`rays` from the rule's points on whole facets, without the points in memory: pair ``p``'s point
+    ``q`` is the bilinear map of ``corners[dom[p]]`` (float64, rotated by ``shift[p]``) at ``(u_q, v_q)``, moved
+    to the caster's frame (``− centre``) and rounded to float32 as the points given to :func:`rays` are; the
+    target quad is ``rel[tgt[p]]`` and the normals ``normals[dom[p]]``, ``normals[tgt[p]]`` (the caster-frame
+    float32 tables, widened to float64); the pair's seed is :func:`.sampling.pair_seeds`' hash of
+    ``(dom[p], tgt[p])``. The same rays, bit for bit."""
+    P, Q = dom.shape[0], u.shape[0]
+    for blk in prange((P + _RULE_BLOCK - 1) // _RULE_BLOCK):
+        quad = np.empty((4, 3))
+        for p in range(blk * _RULE_BLOCK, min(P, (blk + 1) * _RULE_BLOCK)):
+            a = dom[p]
+            b = tgt[p]
+            for k in range(4):
+                kk = (k + shift[p]) % 4
+                quad[k, 0] = corners[a, kk, 0]
+                quad[k, 1] = corners[a, kk, 1]
+                quad[k, 2] = corners[a, kk, 2]
+            seed0 = ((a * 2654435761 + b * 2246822519) % 1048573) / 1048576.0
+            seed1 = ((a * 3266489917 + b * 668265263) % 1048571) / 1048576.0
+            for q in range(Q):
+                x0, x1, x2, _, _, _, _, _, _ = bilinear_map(quad, u[q], v[q])
+                x0 = np.float64(np.float32(x0 - centre[0]))
+                x1 = np.float64(np.float32(x1 - centre[1]))
+                x2 = np.float64(np.float32(x2 - centre[2]))
+                _point_rays(p, q, Q, x0, x1, x2, normals[a], rel[b], normals[b], n, seed0, seed1, jitter, margin,
+                            eps, end_gap, origin, direction, tfar, weight)
 
 
 @njit(cache=True, parallel=True)

@@ -69,24 +69,31 @@ def _domains(corners: Tensor, dom: Tensor, shift: Tensor) -> Tensor:
 
 def _visible_rows(
     need: Tensor | None, vis: Visibility | None, quads: Callable[[Tensor], Tensor], u: Tensor, v: Tensor,
-    dom: Tensor, tgt: Tensor,
+    dom: Tensor, tgt: Tensor, whole: tuple[Tensor, Tensor] | None = None,
 ) -> tuple[Tensor, Tensor]:
     """Visible fractions ``[R, Q]`` of the pairs that need rays, and each pair's row in it (-1: fully visible).
 
     ``quads(rows)`` gives the domain quads ``[R, 4, 3]`` of those pairs (their points are ``bilinear(quads, u, v)``).
+    ``whole = (corners, shift)``: the domains are whole facets (``corners[dom]`` rotated by ``shift``), so a
+    :class:`~.visibility.PointVisibility` builds the rays from the rule itself (no points in memory).
     """
     P = dom.numel()
     vrow = torch.full((P,), -1, dtype=torch.int64)
     if need is None or vis is None or not bool(need.any()):
         return torch.ones(1, u.numel(), dtype=torch.float64), vrow
     rows = torch.nonzero(need).reshape(-1)
+    vrow[rows] = torch.arange(rows.numel())
+    rule_fractions = getattr(vis, "rule_fractions", None)
+    if whole is not None and rule_fractions is not None:  # domains are whole facets: no points in memory
+        fr = rule_fractions(whole[0], dom[rows], tgt[rows], whole[1][rows], u, v)
+        if fr is not None:
+            return fr.contiguous(), vrow
     q = quads(rows).detach()
     if loops() is not None and q.device.type == "cpu":
         x = torch.empty(rows.numel(), u.numel(), 3, dtype=torch.float64)
         launch(loops().quad_points, _np(q.double()), _np(u.double()), _np(v.double()), x.numpy())
     else:
         x, _ = bilinear(q, u, v)
-    vrow[rows] = torch.arange(rows.numel())
     return vis(x, dom[rows], tgt[rows]).to(torch.float64).contiguous(), vrow
 
 
@@ -253,7 +260,8 @@ def group_sums(
             fr, vrow = torch.ones(1, u.numel(), dtype=torch.float64), torch.empty(0, dtype=torch.int64)
         else:
             d, t, sh = dom[p], tgt[p], shift[p]
-            fr, vrow = _visible_rows(need[p], vis, lambda r: _domains(corners, d[r], sh[r]), u, v, d, t)  # noqa: B023
+            fr, vrow = _visible_rows(need[p], vis, lambda r: _domains(corners, d[r], sh[r]), u, v, d, t,  # noqa: B023
+                                     whole=(corners, sh))
         launch(loops().pair_sums, *args, _np(p), *rule_np, float(eps), _np(fr), _np(vrow), into.numpy())
     return into if out is not None or select is None else into[select]
 

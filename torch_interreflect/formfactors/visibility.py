@@ -189,6 +189,7 @@ class PointVisibility:
         self.angle = angle
         self.jitter = bool(jitter)
         self._grids: dict[int, tuple[Tensor, Tensor]] = {}
+        self._tables: tuple[np.ndarray, np.ndarray] | None = None
         cent = sc.centroids
         self.centroids = cent - self.origin
         self.radius = (sc.corners - cent[:, None, :]).norm(dim=-1).max(dim=1).values
@@ -206,15 +207,73 @@ class PointVisibility:
         if self.angle is None or self.tol is not None:
             out[:] = self._fractions(xs, dom, tgt, self.n, self.pts, self.wts)
         else:
-            # fewer target samples for targets that look small: ceil(angular size / angle) per direction
-            c = self.centroids
-            alpha = 2 * self.radius[tgt] / (c[tgt] - c[dom]).norm(dim=-1).clamp_min(1e-30)
-            n_row = (alpha / self.angle).ceil().clamp(1, self.n).long()
-            for m in n_row.unique().tolist():
-                rows = torch.nonzero(n_row == m).reshape(-1)
+            for rows, m in self._rows_by_samples(dom, tgt):
                 pts, wts = self._grid(m)
                 out[rows] = self._fractions(xs[rows], dom[rows], tgt[rows], m, pts, wts)
         self.seconds += time.perf_counter() - t0
+        return out
+
+    def _rows_by_samples(self, dom: Tensor, tgt: Tensor) -> list[tuple[Tensor, int]]:
+        """``(rows, m)``: the pairs whose target gets ``m × m`` samples, ``m = ceil(angular size / angle)`` (at
+        most ``n``): fewer for targets that look small."""
+        c = self.centroids
+        alpha = 2 * self.radius[tgt] / (c[tgt] - c[dom]).norm(dim=-1).clamp_min(1e-30)
+        n_row = (alpha / self.angle).ceil().clamp(1, self.n).long()
+        return [(torch.nonzero(n_row == m).reshape(-1), m) for m in n_row.unique().tolist()]
+
+    @torch.no_grad()
+    def rule_fractions(self, corners: Tensor, dom: Tensor, tgt: Tensor, shift: Tensor, u: Tensor,
+                       v: Tensor) -> Tensor | None:
+        """What :meth:`__call__` gives for the points of the rule ``(u, v)`` on whole facets, without the points
+        in memory: the compiled loop maps the rule onto ``corners[dom]`` (float64, metres, corners rotated by
+        ``shift``) itself. None where the compiled loops do not apply (then call with the points).
+
+        Shape:
+            - corners: ``[F, 4, 3]``; dom, tgt, shift: ``[P]``; u, v: ``[Q]``
+            - output: ``[P, Q]`` (float64)
+        """
+        kern = loops("visibility")
+        if kern is None or self.tol is not None or corners.device.type != "cpu":
+            return None
+        t0 = time.perf_counter()
+        if self._tables is None:  # the float32 caster-frame tables, widened once
+            self._tables = (self.normals.double().numpy(), self.corners.double().numpy())
+        out = torch.empty(dom.numel(), u.numel(), dtype=torch.float64)
+        groups = [(None, self.n)] if self.angle is None else self._rows_by_samples(dom, tgt)
+        for rows, m in groups:
+            sel = (dom, tgt, shift) if rows is None else (dom[rows], tgt[rows], shift[rows])
+            part = self._rule_chunks(kern, corners, sel, u, v, m)
+            if rows is None:
+                out = part
+            else:
+                out[rows] = part
+        self.seconds += time.perf_counter() - t0
+        return out
+
+    def _rule_chunks(self, kern: Any, corners: Tensor, sel: tuple[Tensor, Tensor, Tensor], u: Tensor, v: Tensor,
+                     n: int) -> Tensor:
+        """:meth:`_compiled_fractions` with the rays built from the rule's points by ``rule_rays``."""
+        dom, tgt, shift = sel
+        P, Q, S = dom.numel(), u.numel(), n * n
+        out = torch.empty(P, Q, dtype=torch.float64)
+        per = max(1, (1 << 19) // (Q * S))
+        eps = float(self.caster.eps)
+        c64 = corners.detach().to(torch.float64).contiguous().numpy()
+        centre = self.origin.to(torch.float64).numpy()
+        normals, rel = self._tables
+        uv = [t.to(torch.float64).contiguous().numpy() for t in (u, v)]
+        for s in range(0, P, per):
+            a, b, sh = (t[s : s + per].contiguous().numpy() for t in (dom, tgt, shift))
+            c = a.shape[0]
+            origin = np.empty((c * Q * S, 3), dtype=np.float32)
+            direction = np.empty((c * Q * S, 3), dtype=np.float32)
+            tfar = np.empty(c * Q * S, dtype=np.float32)
+            weight = np.empty((c, Q, S), dtype=np.float64)
+            launch(kern.rule_rays, c64, centre, a, b, sh, *uv, normals, rel, n, self.jitter, _MARGIN, eps, _END_GAP,
+                   origin, direction, tfar, weight)
+            blocked = self.caster.occluded(origin, direction, tfar)
+            self.rays += c * Q * S
+            launch(kern.fractions, weight, blocked, out[s : s + per].numpy())
         return out
 
     def _grid(self, m: int) -> tuple[Tensor, Tensor]:
