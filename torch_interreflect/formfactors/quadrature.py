@@ -228,7 +228,7 @@ def _dense_direct(dom: Tensor, tgt: Tensor, value: Tensor, areas: Tensor, layout
     if kern is None or value.requires_grad or dtype not in (torch.float32, torch.float64) or layout == "sparse":
         return None
     # numpy here, not torch: a torch parallel region right before the launch leaves OpenMP workers spinning
-    if layout == "auto" and F > _DENSE_MAX_FACETS and 2 * np.count_nonzero(value.numpy() > 0) <= SPARSE_DENSITY * F * F:
+    if layout == "auto" and _sparse_wins(F, 2 * np.count_nonzero(value.numpy() > 0)):
         return None
     mat = torch.from_numpy(np.zeros((F, F), dtype=np.float32 if dtype == torch.float32 else np.float64))
     blocks = max(1, min(4 * torch.get_num_threads(), (dom.numel() >> 14) + 1))
@@ -305,6 +305,11 @@ def pair_entries(areas: Tensor, dom: Tensor, tgt: Tensor, value: Tensor) -> tupl
     return torch.cat([dom, tgt]), torch.cat([tgt, dom]), torch.cat([value / areas[dom], value / areas[tgt]])
 
 
+def _sparse_wins(F: int, nnz: int) -> bool:
+    """``layout="auto"``: sparse CSR above ``_DENSE_MAX_FACETS`` facets when at most ``SPARSE_DENSITY`` is nonzero."""
+    return F > _DENSE_MAX_FACETS and nnz <= SPARSE_DENSITY * F * F
+
+
 def assemble(rows: Tensor, cols: Tensor, vals: Tensor, F: int, layout: str, dtype: torch.dtype) -> tuple[Tensor, str]:
     """The ``[F, F]`` matrix of the entries in ``dtype``, dense or CSR, and the layout used.
 
@@ -312,8 +317,7 @@ def assemble(rows: Tensor, cols: Tensor, vals: Tensor, F: int, layout: str, dtyp
     the entries are nonzero, sparse CSR otherwise. Entries are float64 on the CPU (as the quadrature gives them).
     """
     if layout == "auto":
-        sparse = F > _DENSE_MAX_FACETS and rows.numel() <= SPARSE_DENSITY * F * F
-        layout = "sparse" if sparse else "dense"
+        layout = "sparse" if _sparse_wins(F, rows.numel()) else "dense"
     if layout == "dense":
         mat = torch.zeros(F, F, dtype=dtype, device=vals.device)  # in the output dtype: no [F, F] copy
         kern = loops("pairs")

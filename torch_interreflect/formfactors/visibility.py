@@ -239,14 +239,9 @@ class PointVisibility:
         if self._tables is None:  # the float32 caster-frame tables, widened once
             self._tables = (self.normals.double().numpy(), self.corners.double().numpy())
         out = torch.empty(dom.numel(), u.numel(), dtype=torch.float64)
-        groups = [(None, self.n)] if self.angle is None else self._rows_by_samples(dom, tgt)
+        groups = [(torch.arange(dom.numel()), self.n)] if self.angle is None else self._rows_by_samples(dom, tgt)
         for rows, m in groups:
-            sel = (dom, tgt, shift) if rows is None else (dom[rows], tgt[rows], shift[rows])
-            part = self._rule_chunks(kern, corners, sel, u, v, m)
-            if rows is None:
-                out = part
-            else:
-                out[rows] = part
+            out[rows] = self._rule_chunks(kern, corners, (dom[rows], tgt[rows], shift[rows]), u, v, m)
         self.seconds += time.perf_counter() - t0
         return out
 
@@ -254,27 +249,19 @@ class PointVisibility:
                      n: int) -> Tensor:
         """:meth:`_compiled_fractions` with the rays built from the rule's points by ``rule_rays``."""
         dom, tgt, shift = sel
-        P, Q, S = dom.numel(), u.numel(), n * n
-        out = torch.empty(P, Q, dtype=torch.float64)
-        per = max(1, (1 << 19) // (Q * S))
         eps = float(self.caster.eps)
         c64 = corners.detach().to(torch.float64).contiguous().numpy()
         centre = self.origin.to(torch.float64).numpy()
         normals, rel = self._tables
         uv = [t.to(torch.float64).contiguous().numpy() for t in (u, v)]
-        for s in range(0, P, per):
-            a, b, sh = (t[s : s + per].contiguous().numpy() for t in (dom, tgt, shift))
-            c = a.shape[0]
-            origin = np.empty((c * Q * S, 3), dtype=np.float32)
-            direction = np.empty((c * Q * S, 3), dtype=np.float32)
-            tfar = np.empty(c * Q * S, dtype=np.float32)
-            weight = np.empty((c, Q, S), dtype=np.float64)
+
+        def cast(s: int, e: int, *buffers: np.ndarray) -> None:
+            a, b, sh = (t[s:e].contiguous().numpy() for t in (dom, tgt, shift))
             launch(kern.rule_rays, c64, centre, a, b, sh, *uv, normals, rel, n, self.jitter, _MARGIN, eps, _END_GAP,
-                   origin, direction, tfar, weight)
-            blocked = self.caster.occluded(origin, direction, tfar)
-            self.rays += c * Q * S
-            launch(kern.fractions, weight, blocked, out[s : s + per].numpy())
-        return out
+                   *buffers)
+
+        Q, S = u.numel(), n * n
+        return self._cast_chunks(kern, cast, dom.numel(), Q, S, max(1, (1 << 19) // (Q * S)))
 
     def _grid(self, m: int) -> tuple[Tensor, Tensor]:
         """Midpoint-rule points and weights of an ``m × m`` grid on every facet (cached)."""
@@ -324,25 +311,30 @@ class PointVisibility:
                             per: int) -> Tensor:
         """:meth:`_fractions` of the fixed grid through the compiled loops (:mod:`._numba_visibility`): rays and
         weights in one pass, Embree, then the weighted fractions; no ``[c, Q, S, 3]`` temporaries in torch."""
-        P, Q, _ = xs.shape
-        S = n * n
-        out = torch.empty(P, Q, dtype=torch.float64)
         eps = float(self.caster.eps)
+
+        def cast(s: int, e: int, *buffers: np.ndarray) -> None:
+            a, b = dom[s:e], tgt[s:e]
+            args = [t.contiguous().numpy() for t in (xs[s:e].double(), self.normals[a].double(),
+                                                      self.corners[b].double(), self.normals[b].double())]
+            launch(kern.rays, *args, n, pair_seeds(a, b).numpy(), jitter, _MARGIN, eps, _END_GAP, *buffers)
+
+        return self._cast_chunks(kern, cast, xs.shape[0], xs.shape[1], n * n, per)
+
+    def _cast_chunks(self, kern: Any, cast: Any, P: int, Q: int, S: int, per: int) -> Tensor:
+        """Visible fractions ``[P, Q]``, ``per`` pairs at a time: ``cast(start, stop, origin, direction, tfar,
+        weight)`` fills the chunk's rays and weights, Embree answers, the compiled loop weighs the answers."""
+        out = torch.empty(P, Q, dtype=torch.float64)
         for s in range(0, P, per):
-            a, b = dom[s : s + per], tgt[s : s + per]
-            c = a.numel()
-            seed = pair_seeds(a, b)
+            c = min(per, P - s)
             origin = np.empty((c * Q * S, 3), dtype=np.float32)
             direction = np.empty((c * Q * S, 3), dtype=np.float32)
             tfar = np.empty(c * Q * S, dtype=np.float32)
             weight = np.empty((c, Q, S), dtype=np.float64)
-            args = [t.contiguous().numpy() for t in (xs[s : s + per].double(), self.normals[a].double(),
-                                                      self.corners[b].double(), self.normals[b].double())]
-            launch(kern.rays, args[0], args[1], args[2], args[3], n, seed.numpy(), jitter, _MARGIN, eps, _END_GAP,
-                   origin, direction, tfar, weight)
+            cast(s, s + c, origin, direction, tfar, weight)
             blocked = self.caster.occluded(origin, direction, tfar)
             self.rays += c * Q * S
-            launch(kern.fractions, weight, blocked, out[s : s + per].numpy())
+            launch(kern.fractions, weight, blocked, out[s : s + c].numpy())
         return out
 
     @staticmethod
