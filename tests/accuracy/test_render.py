@@ -39,6 +39,19 @@ def groove_reference(groove: ti.Scene) -> torch.Tensor:
     return 2 * out[1] - out[0]
 
 
+@pytest.fixture(scope="module")
+def groove_fitted_reference(groove: ti.Scene) -> torch.Tensor:
+    """Uniform refinement k = 4, 8, 16 under uniform light, extrapolated with the order fitted on the three (1.56;
+    within 4e-5 of the same from k = 6, 12, 24)."""
+    out = []
+    for k in (4, 8, 16):
+        fine, parent = groove.subdivide(k)
+        E = ti.solve(ti.form_factors(fine), _grey(fine, 0.8), torch.ones(fine.num_facets, 1, dtype=D))
+        out.append(groove.average_to_parent(E, parent, fine)[:, 0])
+    order = math.log2(_rel_rms(out[1], out[0]) / _rel_rms(out[2], out[1]))
+    return out[2] + (out[2] - out[1]) / (2**order - 1)
+
+
 def _rel_rms(x: torch.Tensor, ref: torch.Tensor) -> float:
     return float(((x - ref) / ref).square().mean().sqrt())
 
@@ -81,8 +94,10 @@ def test_closed_box_is_exact_at_any_refinement():
 def test_refinement_keeps_the_layout_and_the_total_power(groove):
     r = torch.linspace(0.3, 0.9, groove.num_facets, dtype=D)
     p = plan(groove, r, [-0.9, 0.1, -0.3], ONE, wavelengths=WL, accuracy=1e-2)  # lights both plates
+    assert p.report.extrapolated and p.coarse is not None and p.report.iterations >= 1
     p = dataclasses.replace(p, method="dense", bounces=None)
-    out = p.apply(r, ONE)
+    level = dataclasses.replace(p, coarse=None, extrapolation=None)  # the last level alone
+    out = level.apply(r, ONE)
     assert out.irradiance.shape == (groove.num_facets, 1)
     # leaves tile the user's facets: areas add up per facet
     leaf_area = torch.zeros(groove.num_facets, dtype=D).index_add(0, p.leaf_user, p.leaves.areas)
@@ -92,6 +107,33 @@ def test_refinement_keeps_the_layout_and_the_total_power(groove):
     torch.testing.assert_close(
         (groove.areas * out.irradiance[:, 0]).sum(), (p.leaves.areas * E_leaf[:, 0]).sum(), rtol=1e-9, atol=0
     )
+    # the plan's output is the Richardson extrapolation x + c (x - x_coarse) of the last two levels
+    low = dataclasses.replace(p.coarse, method="dense", bounces=None).apply(r, ONE).irradiance
+    c = p.extrapolation
+    assert bool(((c >= 0) & (c <= 1)).all()) and bool((c > 0).any())
+    torch.testing.assert_close(p.apply(r, ONE).irradiance, out.irradiance + c[:, None] * (out.irradiance - low),
+                               rtol=1e-12, atol=0)
+
+
+@pytest.mark.parametrize(("accuracy", "ratio"), [(3e-2, 0.6), (1e-2, 0.25)])
+def test_extrapolation_lowers_the_error_and_the_estimate_covers_it(groove, groove_fitted_reference, accuracy, ratio):
+    """The extrapolated output against the last level alone (measured: 0.78 % vs 1.55 % at 3e-2, 0.069 % vs 0.64 %
+    at 1e-2)."""
+    r = _grey(groove, 0.8)
+    p = plan(groove, r, "uniform", ONE, wavelengths=WL, accuracy=accuracy)
+    assert p.report.extrapolated and p.report.reached
+    extrapolated = _rel_rms(p.apply(r, ONE).irradiance[:, 0], groove_fitted_reference)
+    last = dataclasses.replace(p, coarse=None, extrapolation=None).apply(r, ONE).irradiance[:, 0]
+    assert extrapolated <= ratio * _rel_rms(last, groove_fitted_reference)
+    assert extrapolated <= p.report.estimated
+
+
+def test_without_extrapolation_the_last_level_is_returned(groove, groove_fitted_reference):
+    r = _grey(groove, 0.8)
+    p = plan(groove, r, "uniform", ONE, wavelengths=WL, accuracy=1e-2, extrapolate=False)
+    assert not p.report.extrapolated and p.coarse is None and p.extrapolation is None and p.report.iterations >= 1
+    actual = _rel_rms(p.apply(r, ONE).irradiance[:, 0], groove_fitted_reference)
+    assert actual <= p.report.estimated <= 3 * actual  # measured 0.64 % and 0.70 %
 
 
 def test_sparsified_kernel_stays_within_its_bound():

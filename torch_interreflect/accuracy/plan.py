@@ -3,6 +3,7 @@ that renders differentiably (:meth:`Plan.apply`). How each source of error is bo
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 import warnings
@@ -23,7 +24,7 @@ from ..geometry._polygon import bilinear, bilinear_coordinates
 from ..geometry.scene import Scene, area_average
 from ..solver.api import solve
 from .leaves import light_factor, rms
-from .refine import Problem, Refinement, refine
+from .refine import AMPLIFICATION, Problem, Refinement, refine
 from .report import AccuracyReport, RenderResult
 from .settings import Settings, budget_for, choose_settings, quadrature_tol_for
 from .wavelengths import grid_of, interp_matrix, spectra
@@ -44,6 +45,9 @@ class Plan:
         method, bounces, solver_tol: How the final system is solved.
         report: What was chosen and the estimated error (for the reflectance and light the plan was made with).
         light: The light as :func:`plan` got it (per user facet); images gather their direct light from it.
+        coarse: The refinement level before the last one, as a plan with the same settings (``None`` when the plan
+            did not refine); ``extrapolation [F]``: the coefficient ``c`` of each user facet in the extrapolated
+            output ``x + c (x − x_coarse)`` (Richardson; 0 where it is not used).
     """
 
     scene: Scene
@@ -58,6 +62,8 @@ class Plan:
     solver_tol: float
     report: AccuracyReport
     light: Any = "uniform"
+    coarse: Plan | None = None
+    extrapolation: Tensor | None = None
 
     def for_geometry(self, scene: Scene) -> Plan:
         """The same refinement and settings on ``scene``: the user's facets at other positions (same count, kind and
@@ -80,8 +86,9 @@ class Plan:
         leaves = self._moved_leaves(scene)
         K = form_factors(leaves, quadrature_tol=self.report.quadrature_tol, progress=False)
         g = light_factor(self.light, leaves, K, user, scene.num_facets)
+        coarse = self._coarse().for_geometry(scene) if self.coarse is not None else None  # type: ignore[union-attr]
         return Plan(scene, leaves, self.leaf_user, K, g, self.grid, self.nodes, self.method, self.bounces,
-                    self.solver_tol, self.report, self.light)
+                    self.solver_tol, self.report, self.light, coarse, self.extrapolation)
 
     def _moved_leaves(self, scene: Scene) -> Scene:
         """The leaves at ``scene``'s corners: each keeps its bilinear coordinates in its user facet (differentiable
@@ -112,7 +119,9 @@ class Plan:
             shading: ``"gather"`` (per-pixel final gather, the default) or ``"flat"`` (each leaf one colour).
 
         Returns:
-            A :class:`RenderResult` on the user's facets; its report is the plan's.
+            A :class:`RenderResult` on the user's facets; its report is the plan's. When the plan refined, the
+            per-facet outputs are extrapolated from the last two levels (:attr:`extrapolation`; the coarse level is
+            solved too); the ``image`` is shaded from the last level's leaves.
 
         Gradients:
             To ``reflectance`` and ``illuminant``; and, when the plan's scene was built from corners that require
@@ -130,6 +139,28 @@ class Plan:
             - reflectance: ``[..., F, L]`` or ``[..., F]``; illuminant: ``[..., L]``
             - output irradiance, radiance: ``[..., F, L]``; rgb: ``[..., F, C]``; image: ``[..., C, H, W]``
         """
+        fine = self._apply_level(reflectance, illuminant, camera, view, shading)
+        if self.coarse is None or self.extrapolation is None:
+            return fine
+        low = self._coarse()._apply_level(reflectance, illuminant, camera, None, shading)  # type: ignore[union-attr]
+        c = self.extrapolation.to(device=fine.irradiance.device, dtype=fine.irradiance.dtype)[:, None]
+        E = fine.irradiance + c * (fine.irradiance - low.irradiance)
+        rgb = fine.rgb + c * (fine.rgb - low.rgb) if fine.rgb is not None and low.rgb is not None else None
+        _, r = spectra(self.grid, illuminant, reflectance, self.scene.num_facets)
+        return RenderResult(E, r * E / math.pi, rgb, self.report, fine.image)
+
+    def _coarse(self) -> Plan | None:
+        """The coarse level with this plan's light and solver (they may have been replaced since planning)."""
+        if self.coarse is None:
+            return None
+        return dataclasses.replace(self.coarse, light=self.light, method=self.method, bounces=self.bounces,
+                                   solver_tol=self.solver_tol)
+
+    def _apply_level(
+        self, reflectance: Tensor, illuminant: Tensor | str | float, camera: Camera | None, view: View | None,
+        shading: str,
+    ) -> RenderResult:
+        """:meth:`apply` on this level's leaves alone (no extrapolation)."""
         F, L = self.scene.num_facets, self.grid.numel()
         S, r = spectra(self.grid, illuminant, reflectance, F)
         nodes, user = self.nodes, self.leaf_user
@@ -205,6 +236,7 @@ def plan(
     wavelengths: Tensor | None = None,
     max_facets: int = 12_000,
     max_iterations: int = 12,
+    extrapolate: bool = True,
     progress: bool | None = None,
 ) -> Plan:
     """Choose the refinement and settings that reach ``accuracy`` for this reflectance and light.
@@ -223,14 +255,15 @@ def plan(
     """
     t_start = time.perf_counter()
     _check_request(scene, accuracy, max_facets)
-    pb = _problem(scene, reflectance, light, illuminant, camera, accuracy, wavelengths)
+    pb = _problem(scene, reflectance, light, illuminant, camera, accuracy, wavelengths, extrapolate)
     show = progress if progress is not None else scene.num_facets >= 2000 or accuracy < 3e-3
     st = refine(pb, max_facets=max_facets, max_iterations=max_iterations, show=show, t_start=t_start)
     t = time.perf_counter()
     r_max = float(pb.r.max()) if pb.r.numel() else 0.0
-    settings = choose_settings(st.K, st.h, st.leaves, pb.F, r_max, accuracy, pb.budget)  # type: ignore[arg-type]
+    amp = _amplification(st)
+    settings = choose_settings(st.K, st.h, st.leaves, pb.F, r_max, accuracy, pb.budget, amp)  # type: ignore[arg-type]
     pb.seconds["sparsify"] = time.perf_counter() - t
-    report = _report(pb, st, settings, t_start)
+    report = _report(pb, st, settings, t_start, amp)
     if not report.reached:
         warnings.warn(
             f"render: requested accuracy {accuracy:.3g} not reached; estimated {report.estimated:.3g} after "
@@ -239,6 +272,12 @@ def plan(
             AccuracyWarning,
             stacklevel=3,
         )
+    coarse, coef = None, None
+    if st.coarse is not None and st.coef is not None and bool((st.coef > 0).any()):
+        lv = st.coarse
+        coarse = Plan(scene, lv.leaves.scene, lv.leaves.user, lv.K, lv.g, pb.grid, st.nodes,  # type: ignore[arg-type]
+                      settings.method, settings.bounces, settings.solver_tol, report, light)
+        coef = st.coef.to(device=scene.device, dtype=scene.dtype)
     return Plan(
         scene,
         st.leaves.scene,
@@ -252,6 +291,8 @@ def plan(
         settings.solver_tol,
         report,
         light,
+        coarse,
+        coef,
     )
 
 
@@ -292,6 +333,7 @@ def _problem(
     camera: Camera | None,
     accuracy: float,
     wavelengths: Tensor | None,
+    extrapolate: bool,
 ) -> Problem:
     """The validated, detached inputs on the grid, and the budget."""
     grid = grid_of(camera, wavelengths, scene.dtype, scene.device)
@@ -306,19 +348,27 @@ def _problem(
         light,
         float(accuracy),
         budget,
-        quadrature_tol_for(accuracy, budget),
+        quadrature_tol_for(accuracy, budget, AMPLIFICATION if extrapolate else 1.0),
         max(1e-10, 1e-3 * accuracy),
+        extrapolate=bool(extrapolate),
     )
 
 
-def _report(pb: Problem, st: Refinement, settings: Settings, t_start: float) -> AccuracyReport:
-    """The :class:`AccuracyReport`: parts per source, their sum, and what was chosen."""
+def _amplification(st: Refinement) -> float:
+    """How many times the output can carry one level's error from the other sources: ``1 + 2 max c`` for the
+    extrapolated ``(1 + c) x − c x_coarse`` (1 without extrapolation)."""
+    return 1.0 + 2.0 * (float(st.coef.max()) if st.coef is not None and st.coef.numel() else 0.0)
+
+
+def _report(pb: Problem, st: Refinement, settings: Settings, t_start: float, amp: float) -> AccuracyReport:
+    """The :class:`AccuracyReport`: parts per source, their sum, and what was chosen (``amp``:
+    :func:`_amplification`; the sparsification and solver bounds already include it)."""
     F = pb.F
     parts = {
         "discretisation": rms(st.est),
-        "form_factors": pb.quadrature_tol,
-        "sparsification": settings.sparse_bound,
-        "solver": settings.solver_bound,
+        "form_factors": amp * pb.quadrature_tol,
+        "sparsification": amp * settings.sparse_bound,
+        "solver": amp * settings.solver_bound,
         "wavelengths": st.wavelength_error,
         "light": rms(st.light_error) if st.light_error is not None else 0.0,
     }
@@ -347,4 +397,5 @@ def _report(pb: Problem, st: Refinement, settings: Settings, t_start: float) -> 
         wavelength_error=st.wavelength_error,
         seconds=pb.seconds,
         history=st.history,
+        extrapolated=amp > 1.0,
     )

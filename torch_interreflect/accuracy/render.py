@@ -67,6 +67,7 @@ def render(
     wavelengths: Tensor | None = None,
     max_facets: int = 12_000,
     max_iterations: int = 12,
+    extrapolate: bool = True,
     progress: bool | None = None,
     view: View | None = None,
     shading: str = "gather",
@@ -95,6 +96,9 @@ def render(
         max_facets: Most facets solved after refinement (memory and time grow as their square).
         max_iterations: Most refinement steps. Refinement also stops when two steps lowered the estimate by less
             than :data:`STALL` (then the target is out of reach at any affordable size: a warning says so).
+        extrapolate: After a refinement, return the per-facet outputs extrapolated from the last two levels
+            (Richardson; the coarse level is solved too, and the estimate is that of the extrapolated values).
+            ``False``: the last level alone.
         progress: Show a progress bar (default: when the work is large).
         view: A pinhole view (:class:`~torch_interreflect.camera.View`): also return ``image``, shaded per pixel by a
             final gather from the solved (refined) facets (:meth:`Plan.apply`).
@@ -133,6 +137,7 @@ def render(
         wavelengths=wavelengths,
         max_facets=max_facets,
         max_iterations=max_iterations,
+        extrapolate=extrapolate,
         progress=progress,
     )
     return p.apply(reflectance, illuminant, camera, view=view, shading=shading)

@@ -35,6 +35,8 @@ class AccuracyReport:
         wavelength_error: RGB error of the subset against the full grid, measured on the user's facets.
         seconds: Wall time per stage.
         history: Per refinement step: leaves, estimated discretisation error, seconds.
+        extrapolated: Whether the outputs are extrapolated from the last two refinement levels (the coarse level is
+            solved too; :attr:`Plan.extrapolation`).
     """
 
     requested: float
@@ -57,6 +59,7 @@ class AccuracyReport:
     wavelength_error: float
     seconds: dict[str, float] = field(default_factory=dict)
     history: list[dict[str, float]] = field(default_factory=list)
+    extrapolated: bool = False
 
     @property
     def form_factor_tol(self) -> float:

@@ -37,9 +37,10 @@ def budget_for(camera: object | None) -> dict[str, float]:
     return budget
 
 
-def quadrature_tol_for(accuracy: float, budget: dict[str, float]) -> float:
-    """Per-entry form-factor quadrature tolerance for the form-factor share of ``accuracy``."""
-    return min(1e-3, max(1e-7, budget["form_factors"] * accuracy))
+def quadrature_tol_for(accuracy: float, budget: dict[str, float], amplification: float = 1.0) -> float:
+    """Per-entry form-factor quadrature tolerance for the form-factor share of ``accuracy``, divided by
+    ``amplification`` (how many times an extrapolated output can carry a level's error)."""
+    return min(1e-3, max(1e-7, budget["form_factors"] * accuracy / amplification))
 
 
 @dataclass
@@ -97,11 +98,15 @@ def _solver(rho: float, share: float, spread: float, n: int) -> tuple[str, int |
 
 
 def choose_settings(
-    K: FormFactors, h: Tensor, leaves: Leaves, F: int, r_max: float, accuracy: float, budget: dict[str, float]
+    K: FormFactors, h: Tensor, leaves: Leaves, F: int, r_max: float, accuracy: float, budget: dict[str, float],
+    amplification: float = 1.0,
 ) -> Settings:
-    """Sparsification and solver for the final solve on ``leaves``, from the last gain ``h`` solved there."""
+    """Sparsification and solver for the final solve on ``leaves``, from the last gain ``h`` solved there; their
+    shares are divided by ``amplification`` (an extrapolated output carries up to that many times their error)."""
     spread = _spread(h, leaves, F)
     rho = r_max * float(K.row_sums().max()) if K.num_facets else 0.0
-    Kf, dropped, mass, sparse_bound = _sparsify(K, budget["sparsification"] * accuracy, r_max, rho, spread)
-    method, bounces, tol, bound = _solver(rho, budget["solver"] * accuracy, spread, leaves.scene.num_facets)
+    Kf, dropped, mass, sparse_bound = _sparsify(K, budget["sparsification"] * accuracy / amplification, r_max, rho,
+                                                spread)
+    method, bounces, tol, bound = _solver(rho, budget["solver"] * accuracy / amplification, spread,
+                                          leaves.scene.num_facets)
     return Settings(Kf, dropped, mass, sparse_bound, method, bounces, tol, bound)
