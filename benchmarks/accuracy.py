@@ -200,6 +200,10 @@ def finer_solution(
 
 
 # ---------------------------------------------------------------------------------------------- one case
+#: ``render(extrapolate=...)``; ``--last-level`` turns it off (the A/B of the extrapolation, written with a suffix).
+EXTRAPOLATE = True
+
+
 def run_case(p: dict, accuracy: float, max_facets: int = 12_000) -> dict:
     """``ti.render`` once, timed (wall time of the call); the ``AccuracyWarning`` is recorded, not raised."""
     with warnings.catch_warnings(record=True) as caught:
@@ -213,6 +217,7 @@ def run_case(p: dict, accuracy: float, max_facets: int = 12_000) -> dict:
             accuracy=accuracy,
             wavelengths=torch.tensor(WAVELENGTHS, dtype=DTYPE),
             max_facets=max_facets,
+            extrapolate=EXTRAPOLATE,
             progress=False,
         )
         seconds = time.perf_counter() - t0
@@ -721,6 +726,8 @@ def main(argv: Sequence[str] | None = None) -> None:
     ap.add_argument("--uniform-facets", type=int, default=5_000, help="facet cap of the uniform timing curve")
     ap.add_argument("--limit", type=float, default=300.0, help="seconds per render before it is skipped")
     ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--last-level", action="store_true",
+                    help="render(extrapolate=False): the last refinement level alone (suffix _last_level)")
     ap.add_argument(
         "--from-json",
         action="store_true",
@@ -732,7 +739,9 @@ def main(argv: Sequence[str] | None = None) -> None:
     torch.set_grad_enabled(False)
     names = a.scenes or (QUICK_SCENES if a.quick else FULL_SCENES)
     accs = a.accuracies or (QUICK_ACC if a.quick else FULL_ACC)
-    suffix = "_quick" if a.quick else ""
+    suffix = ("_quick" if a.quick else "") + ("_last_level" if a.last_level else "")
+    global EXTRAPOLATE
+    EXTRAPOLATE = not a.last_level
     t_start = time.perf_counter()
     if a.from_json:
         saved = json.loads((CACHE / f"results{suffix}.json").read_text())
