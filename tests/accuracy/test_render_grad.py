@@ -107,3 +107,17 @@ def test_render_image_passes_gradients_to_the_angle():
                + (torch.einsum("fl,fhw->lhw", r0, (cp - cm) / (2 * h)) * w).sum())
     assert abs(fd) > 1.0
     assert abs(float(g) - fd) <= 5e-6 * abs(fd), (float(g), fd)
+
+
+def test_a_replaced_scene_moves_both_levels_of_an_extrapolated_plan():
+    """``dataclasses.replace(plan, scene=...)`` with corners that require grad: the coarse level follows the new
+    scene too, so the gradient is the one of the plan built on that scene (before the coarse level took the
+    parent's scene, only the fine level carried it: 42 % off)."""
+    a = torch.tensor(50.0, dtype=F64, requires_grad=True)
+    p, r = _plan(a)
+    assert p.report.extrapolated and p.coarse is not None
+    (g,) = torch.autograd.grad(p.apply(r).irradiance.sum(), a)
+    b = torch.tensor(50.0, dtype=F64, requires_grad=True)
+    q = dataclasses.replace(p, scene=ti.scenes.v_groove(b, divisions=2))
+    (g2,) = torch.autograd.grad(q.apply(r).irradiance.sum(), b)
+    torch.testing.assert_close(g2, g, rtol=1e-12, atol=0)

@@ -78,7 +78,9 @@ def to_user(values: Tensor, leaves: Leaves, num_user: int) -> Tensor:
 
 
 def relative_change(a: Tensor, b: Tensor) -> Tensor:
-    """Per-facet relative difference ``[F]``: largest over the columns of ``|a − b| / |b|`` (facets on dim −2)."""
+    """Per-facet relative difference ``[F]``: largest over the columns of ``|a − b| / |b|`` (facets on dim −2;
+    computed in float64, so a column that is zero everywhere gives 0, not NaN, in float32 too)."""
+    a, b = a.double(), b.double()
     d = (a - b).abs()
     scale = b.abs()
     floor = 1e-12 * scale.amax(dim=-2, keepdim=True).clamp_min(1e-300)

@@ -72,8 +72,8 @@ class Plan:
 
         Each leaf keeps its bilinear coordinates in its user facet, so the leaves follow the facets; the form
         factors (not sparsified) and the light factor are computed again on the moved leaves, keeping the graph of
-        ``scene.corners`` (and of a light direction that requires grad). The report is the original plan's: its
-        estimate holds for small moves.
+        ``scene.corners`` (and of a light direction that requires grad); so does the coarse level of an extrapolated
+        plan. The report is the original plan's: its estimate holds for small moves.
 
         Raises:
             ShapeError: ``scene`` has other facets than the plan's.
@@ -150,11 +150,14 @@ class Plan:
         return RenderResult(E, r * E / math.pi, rgb, self.report, fine.image)
 
     def _coarse(self) -> Plan | None:
-        """The coarse level with this plan's light and solver (they may have been replaced since planning)."""
+        """The coarse level with this plan's scene, grid, wavelengths, light and solver (they may have been replaced
+        since planning, e.g. ``dataclasses.replace(plan, nodes=...)``). Its leaves, form factors and light factor
+        stay its own: a plan whose ``leaves`` / ``form_factors`` / ``light_factor`` are replaced needs
+        ``coarse=None``."""
         if self.coarse is None:
             return None
-        return dataclasses.replace(self.coarse, light=self.light, method=self.method, bounces=self.bounces,
-                                   solver_tol=self.solver_tol)
+        return dataclasses.replace(self.coarse, scene=self.scene, grid=self.grid, nodes=self.nodes, light=self.light,
+                                   method=self.method, bounces=self.bounces, solver_tol=self.solver_tol)
 
     def _apply_level(
         self, reflectance: Tensor, illuminant: Tensor | str | float, camera: Camera | None, view: View | None,
@@ -202,7 +205,7 @@ class Plan:
             g = light_factor(self.light, self.leaves, self.form_factors, self.leaf_user.to(self.scene.device),
                              self.scene.num_facets)
             return self.form_factors, _straight_through(self.light_factor, g), self.leaves.areas
-        moved = self.for_geometry(self.scene)
+        moved = dataclasses.replace(self, coarse=None).for_geometry(self.scene)  # the coarse level moves on its own
         matrix = _straight_through(_dense(self.form_factors.matrix), _dense(moved.form_factors.matrix))
         return (FormFactors(matrix, moved.leaves.areas, dict(self.form_factors.info)),
                 _straight_through(self.light_factor, moved.light_factor),

@@ -256,11 +256,12 @@ def _update_estimate(st: Refinement, user_vals: Tensor, extrapolate: bool) -> No
     change = delta if st.hat is None else relative_change(st.hat, hat).to(torch.float64).cpu()
     st.est = torch.where(st.touched, change * q / (1 - q), torch.maximum(st.est, change))
     st.prev_delta = torch.where(st.touched, delta, st.prev_delta)
-    st.coef, st.hat, st.coarse = coef, hat, st.previous
+    st.coef, st.hat = coef, hat
+    st.coarse = st.previous if extrapolate else None
 
 
 def _global_ratio(delta: Tensor, prev: Tensor, touched: Tensor) -> float:
-    """RMS of the last changes over the RMS of the ones before, on the ``touched`` facets refined in both steps
+    """RMS of the last changes over the RMS of the ones before, on the ``touched`` facets that have an earlier change
     (0.5, first order, when there are none)."""
     both = touched & prev.isfinite()
     if not bool(both.any()):
@@ -291,7 +292,9 @@ def _split_step(pb: Problem, st: Refinement, user_vals: Tensor, max_facets: int)
     st.touched = torch.zeros(pb.F, dtype=torch.bool)
     st.touched[st.leaves.user[sel].cpu()] = True
     st.prev_user = user_vals
-    st.previous = Level(st.leaves, st.K, st.g)  # type: ignore[arg-type]
+    # kept for the extrapolation only; the level before it is replaced after the next solve, so it goes now
+    st.previous = Level(st.leaves, st.K, st.g) if pb.extrapolate else None  # type: ignore[arg-type]
+    st.coarse = None
     st.leaves = split(st.leaves, sel)
     st.iterations += 1
     return True

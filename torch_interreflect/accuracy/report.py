@@ -22,7 +22,8 @@ class AccuracyReport:
         per_facet: Estimated relative error per user facet. Shape ``[F]``.
         parts: Estimated (discretisation, ray-cast light) or bounded (the rest) relative RMS error per source.
         reached: Whether ``estimated <= requested``.
-        leaves: Facets actually solved (after refinement).
+        leaves: Facets actually solved (after refinement; when extrapolated, the coarse level's leaves,
+            ``Plan.coarse.leaves``, are solved as well).
         leaves_per_facet: Leaves per user facet. Shape ``[F]``.
         iterations: Refinement steps (solves of a refined mesh).
         quadrature_tol: Per-entry form-factor quadrature tolerance used (``form_factor_tol`` is the deprecated
