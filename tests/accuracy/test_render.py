@@ -363,3 +363,16 @@ def test_refinement_steps_reuse_the_kernel_of_unchanged_leaves():
     K = leaf_kernel(leaves.scene, 1e-4, K0, leaves.kept)
     assert K.info["reused_entries"] > 0
     torch.testing.assert_close(K.to_dense(), ti.form_factors(leaves.scene, tol=1e-4).to_dense(), rtol=0, atol=1e-15)
+
+
+def test_a_wavelength_without_light_does_not_break_the_float32_estimate(groove):
+    """An illuminant that is zero at one wavelength: that column is zero everywhere, and the relative change must
+    count it as 0 (in float32 its floor once underflowed to 0, the estimate became NaN and refinement ran to the
+    facet cap while the report said reached)."""
+    g32 = groove.to(torch.float32)
+    wl = torch.tensor([450.0, 550.0, 650.0])
+    out = ti.render(g32, _grey(g32, 0.8, torch.float32), "uniform", torch.tensor([0.0, 1.0, 1.0]), wavelengths=wl,
+                    accuracy=1e-2)
+    rep = out.report
+    assert math.isfinite(rep.parts["discretisation"]) and rep.reached and rep.leaves <= 100  # measured 80
+    assert bool((out.irradiance[:, 0] == 0).all()) and bool((out.irradiance[:, 1:] > 0).all())
