@@ -367,16 +367,18 @@ def _report(pb: Problem, st: Refinement, settings: Settings, t_start: float, amp
     """The :class:`AccuracyReport`: parts per source, their sum, and what was chosen (``amp``:
     :func:`_amplification`; the sparsification and solver bounds already include it)."""
     F = pb.F
+    light = st.light_error if st.light_error is not None else torch.zeros_like(st.est)
+    if st.coef is not None:  # the ray-cast light's error differs between the two levels' leaves: up to 1 + 2c
+        light = light * (1 + 2 * st.coef)
     parts = {
         "discretisation": rms(st.est),
         "form_factors": amp * pb.quadrature_tol,
         "sparsification": amp * settings.sparse_bound,
         "solver": amp * settings.solver_bound,
         "wavelengths": st.wavelength_error,
-        "light": rms(st.light_error) if st.light_error is not None else 0.0,
+        "light": rms(light),
     }
     total = sum(v for v in parts.values() if math.isfinite(v))
-    light = st.light_error if st.light_error is not None else torch.zeros_like(st.est)
     per_facet = st.est + light + (total - parts["discretisation"] - parts["light"])
     pb.seconds["total"] = time.perf_counter() - t_start
     return AccuracyReport(
