@@ -21,6 +21,7 @@ from ..lights import light_geometry
 __all__ = [
     "SKY_SAMPLES",
     "Leaves",
+    "back_leaves",
     "light_check",
     "light_factor",
     "relative_change",
@@ -70,6 +71,24 @@ def split(leaves: Leaves, sel: Tensor) -> Leaves:
         sc.material_names,
     )
     return Leaves(scene, leaves.user[torch.cat([idx_keep, idx_sel[par]])], idx_keep)
+
+
+def back_leaves(back: Leaves | None, leaves: Leaves, touched: Tensor) -> Leaves:
+    """Each user facet one split back, before ``leaves`` are split on the ``touched [F]`` user facets: their
+    current leaves for those, and their leaves in ``back`` (the same before this split) for the others. ``None``
+    for ``back``: before the first split (every facet's current leaves)."""
+    if back is None:
+        return Leaves(leaves.scene, leaves.user)
+    dev = leaves.user.device
+    a = torch.nonzero(touched.to(dev)[leaves.user]).reshape(-1)
+    b = torch.nonzero(~touched.to(back.user.device)[back.user]).reshape(-1)
+    sa, sb = subset(leaves.scene, a), subset(back.scene, b.to(back.scene.device))
+    mat = None
+    if sa.material is not None and sb.material is not None:
+        mat = torch.cat([sa.material, sb.material])
+    scene = Scene.from_parts(torch.cat([sa.corners, sb.corners]), torch.cat([sa.is_triangle, sb.is_triangle]), mat,
+                             leaves.scene.material_names)
+    return Leaves(scene, torch.cat([leaves.user[a], back.user[b].to(dev)]))
 
 
 def to_user(values: Tensor, leaves: Leaves, num_user: int) -> Tensor:

@@ -45,9 +45,9 @@ class Plan:
         method, bounces, solver_tol: How the final system is solved.
         report: What was chosen and the estimated error (for the reflectance and light the plan was made with).
         light: The light as :func:`plan` got it (per user facet); images gather their direct light from it.
-        coarse: The refinement level before the last one, as a plan with the same settings (``None`` when the plan
-            did not refine); ``extrapolation [F]``: the coefficient ``c`` of each user facet in the extrapolated
-            output ``x + c (x − x_coarse)`` (Richardson; 0 where it is not used).
+        coarse: Every user facet one split back (its leaves before its own last split), as a plan with the same
+            settings (``None`` when the plan did not refine); ``extrapolation [F]``: the coefficient ``c`` of each
+            user facet in the extrapolated output ``x + c (x − x_coarse)`` (Richardson; 0 where it is not used).
     """
 
     scene: Scene
@@ -120,8 +120,8 @@ class Plan:
 
         Returns:
             A :class:`RenderResult` on the user's facets; its report is the plan's. When the plan refined, the
-            per-facet outputs are extrapolated from the last two levels (:attr:`extrapolation`; the coarse level is
-            solved too); the ``image`` is shaded from the last level's leaves.
+            per-facet outputs are extrapolated against each facet one split back (:attr:`extrapolation`; the
+            coarse level is solved too); the ``image`` is shaded from the last level's leaves.
 
         Gradients:
             To ``reflectance`` and ``illuminant``; and, when the plan's scene was built from corners that require

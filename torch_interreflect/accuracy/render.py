@@ -15,9 +15,10 @@ its share:
   (0.5, first order, until two changes are known; clamped to ``[1/3, 0.8]``). Facets whose form factors rest on
   ray-cast visibility (a third facet can block some of their pairs) converge slowly and unevenly under refinement
   (the Cornell box: about order 0.65), so they always get the slowest ratio, 0.8 (estimate = 4 × change).
-  After a refinement the outputs are extrapolated from the last two levels (Richardson, ``x + c (x − x_coarse)``
-  with ``c = q/(1 − q) ≤ 1`` from one ratio for the scene; not on facets with ray-cast visibility), and the
-  estimate becomes that of the extrapolated values (:mod:`.refine`); ``extrapolate=False`` turns it off.
+  After a refinement the outputs are extrapolated against each facet one split back (Richardson,
+  ``x + c (x − x_coarse)`` with ``c = q/(1 − q) ≤ 1`` from one ratio for the scene; not on facets with ray-cast
+  visibility), and the estimate becomes that of the extrapolated values (:mod:`.refine`); ``extrapolate=False``
+  turns it off.
 - **Form factors**: the per-entry quadrature tolerance (the Gauss order of every pair follows from it and the
   pair's distance/size ratio).
 - **Sparsification**: entries are dropped (in reciprocal pairs, so conjugate gradients still apply) while the
@@ -99,7 +100,7 @@ def render(
         max_facets: Most facets solved after refinement (memory and time grow as their square).
         max_iterations: Most refinement steps. Refinement also stops when two steps lowered the estimate by less
             than :data:`STALL` (then the target is out of reach at any affordable size: a warning says so).
-        extrapolate: After a refinement, return the per-facet outputs extrapolated from the last two levels
+        extrapolate: After a refinement, return the per-facet outputs extrapolated against each facet one split back
             (Richardson; the coarse level is solved too, and the estimate is that of the extrapolated values).
             ``False``: the last level alone.
         progress: Show a progress bar (default: when the work is large).

@@ -36,7 +36,7 @@ class AccuracyReport:
         wavelength_error: RGB error of the subset against the full grid, measured on the user's facets.
         seconds: Wall time per stage.
         history: Per refinement step: leaves, estimated discretisation error, seconds.
-        extrapolated: Whether the outputs are extrapolated from the last two refinement levels (the coarse level is
+        extrapolated: Whether the outputs are extrapolated against each facet one split back (the coarse level is
             solved too; :attr:`Plan.extrapolation`).
     """
 
