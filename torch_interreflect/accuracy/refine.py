@@ -130,10 +130,9 @@ class Refinement:
             one split back (its leaves before its own last split, :func:`~.leaves.back_leaves`); ``coarse``: that
             mesh solved (``None`` before the first refinement), ``coarse_user`` its outputs on the user facets;
             ``split_before [F]``: user facets split in an earlier step; ``reuse_previous``: whether ``back`` is the
-            previous level (every facet split before was split again), which is then not solved again; ``coef`` the
-            extrapolation
-            coefficient ``c`` per user facet ``[F]`` (float64, CPU); ``hat`` the extrapolated outputs on the user
-            facets ``[..., F, C]``.
+            previous level (every facet split before was split again), which is then not solved again; ``coef``
+            the extrapolation coefficient ``c`` per user facet ``[F]`` (float64, CPU), from ``ratio`` (the last
+            measured convergence ratio, clamped); ``hat`` the extrapolated outputs on the user facets ``[..., F, C]``.
     """
 
     leaves: Leaves
@@ -159,6 +158,7 @@ class Refinement:
     split_before: Tensor | None = None
     reuse_previous: bool = True
     coarse_user: Tensor | None = None
+    ratio: float = 0.5
 
 
 def _start(pb: Problem) -> Refinement:
@@ -254,6 +254,7 @@ def _solve_back(pb: Problem, st: Refinement, prev_user: Tensor) -> None:
     h = pb.solve_gain(K, refl[..., st.nodes], g)
     vals = pb.rgb_of(h, st.nodes, refl) if pb.camera is not None else h * pb.S[..., None, st.nodes]
     st.coarse, st.coarse_user = Level(back, K, g), to_user(vals, back, pb.F)  # type: ignore[arg-type]
+    st.previous = None  # not the coarse level: its kernel can go
 
 
 def _leaf_estimate_to_user(est: Tensor, st: Refinement) -> Tensor:
@@ -282,10 +283,12 @@ def _update_estimate(st: Refinement, user_vals: Tensor, extrapolate: bool) -> No
     # facets with ray-cast visibility are not extrapolated: on the W shape that made their estimate erratic
     # (0.22 % -> 0.25 % over one refinement) and doubled the leaves at 2e-3
     t = st.touched & ~st.sampled & extrapolate
-    qe = min(max(_global_ratio(delta, st.prev_delta, t), Q_MIN), Q_EXTRAPOLATE)
+    measured = _global_ratio(delta, st.prev_delta, t)
+    if measured is not None:  # else the last measured ratio stands (a step that split only new or sampled facets)
+        st.ratio = min(max(measured, Q_MIN), Q_EXTRAPOLATE)
+    qe = st.ratio
     # every facet split so far is extrapolated against itself one split back (st.coarse_user)
-    split = st.touched | st.split_before if st.split_before is not None else st.touched
-    coef = torch.where(split & ~st.sampled & extrapolate, torch.full_like(q, qe / (1 - qe)), torch.zeros_like(q))
+    coef = torch.where(_extrapolated(st) & extrapolate, torch.full_like(q, qe / (1 - qe)), torch.zeros_like(q))
     low = st.coarse_user if st.coarse_user is not None else st.prev_user
     hat = user_vals + coef.to(user_vals)[:, None] * (user_vals - low)
     change = delta if st.hat is None else relative_change(st.hat, hat).to(torch.float64).cpu()
@@ -294,14 +297,20 @@ def _update_estimate(st: Refinement, user_vals: Tensor, extrapolate: bool) -> No
     st.coef, st.hat = coef, hat
 
 
-def _global_ratio(delta: Tensor, prev: Tensor, touched: Tensor) -> float:
+def _global_ratio(delta: Tensor, prev: Tensor, touched: Tensor) -> float | None:
     """RMS of the last changes over the RMS of the ones before, on the ``touched`` facets that have an earlier change
-    (0.5, first order, when there are none)."""
+    (``None`` when there are none, or the earlier changes are all 0)."""
     both = touched & prev.isfinite()
     if not bool(both.any()):
-        return 0.5
+        return None
     num, den = float(delta[both].square().mean()), float(prev[both].square().mean())
-    return math.sqrt(num / den) if den > 0 else 0.5
+    return math.sqrt(num / den) if den > 0 else None
+
+
+def _extrapolated(st: Refinement) -> Tensor:
+    """User facets ``[F]`` whose output is extrapolated: split at some step, and without ray-cast visibility."""
+    was_split = st.touched | st.split_before if st.split_before is not None else st.touched
+    return was_split & ~st.sampled
 
 
 def _stop_reason(pb: Problem, st: Refinement, disc: float, max_iterations: int) -> str | None:
@@ -345,7 +354,7 @@ def refine(pb: Problem, *, max_facets: int, max_iterations: int, show: bool, t_s
     bar = tqdm(total=max_iterations + 1, desc="render", unit="step", leave=False, disable=None if show else True)
     while True:
         user_vals = _solve_level(pb, st)
-        if pb.extrapolate and st.prev_user is not None:
+        if pb.extrapolate and st.prev_user is not None and bool(_extrapolated(st).any()):
             _solve_back(pb, st, st.prev_user)
         _update_estimate(st, user_vals, pb.extrapolate)
         disc = rms(st.est)
