@@ -55,21 +55,21 @@ def subset(scene: Scene, idx: Tensor) -> Scene:
     return Scene.from_parts(scene.corners[idx], scene.is_triangle[idx], mat, scene.material_names)
 
 
+def _joined(a: Scene, b: Scene) -> Scene:
+    """The facets of ``a`` then those of ``b``, two parts of one scene (same material names)."""
+    mat = None
+    if a.material is not None and b.material is not None:
+        mat = torch.cat([a.material, b.material])
+    return Scene.from_parts(torch.cat([a.corners, b.corners]), torch.cat([a.is_triangle, b.is_triangle]), mat,
+                            a.material_names)
+
+
 def split(leaves: Leaves, sel: Tensor) -> Leaves:
     """Split the selected leaves ``sel [n]`` in four (kept leaves first, then the children)."""
     idx_keep = torch.nonzero(~sel).reshape(-1)
     idx_sel = torch.nonzero(sel).reshape(-1)
     fine, par = subset(leaves.scene, idx_sel).subdivide(2)
-    sc = leaves.scene
-    mat = None
-    if sc.material is not None:
-        mat = torch.cat([sc.material[idx_keep], fine.material])
-    scene = Scene.from_parts(
-        torch.cat([sc.corners[idx_keep], fine.corners]),
-        torch.cat([sc.is_triangle[idx_keep], fine.is_triangle]),
-        mat,
-        sc.material_names,
-    )
+    scene = _joined(subset(leaves.scene, idx_keep), fine)
     return Leaves(scene, leaves.user[torch.cat([idx_keep, idx_sel[par]])], idx_keep)
 
 
@@ -82,12 +82,7 @@ def back_leaves(back: Leaves | None, leaves: Leaves, touched: Tensor) -> Leaves:
     dev = leaves.user.device
     a = torch.nonzero(touched.to(dev)[leaves.user]).reshape(-1)
     b = torch.nonzero(~touched.to(back.user.device)[back.user]).reshape(-1)
-    sa, sb = subset(leaves.scene, a), subset(back.scene, b.to(back.scene.device))
-    mat = None
-    if sa.material is not None and sb.material is not None:
-        mat = torch.cat([sa.material, sb.material])
-    scene = Scene.from_parts(torch.cat([sa.corners, sb.corners]), torch.cat([sa.is_triangle, sb.is_triangle]), mat,
-                             leaves.scene.material_names)
+    scene = _joined(subset(leaves.scene, a), subset(back.scene, b.to(back.scene.device)))
     return Leaves(scene, torch.cat([leaves.user[a], back.user[b].to(dev)]))
 
 

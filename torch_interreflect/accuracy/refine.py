@@ -176,17 +176,24 @@ def _start(pb: Problem) -> Refinement:
     )
 
 
-def _kernel_and_light(pb: Problem, st: Refinement) -> None:
-    """Form factors and light factor of the current leaves (and which user facets rest on ray casting)."""
+def _kernel_and_light(
+    pb: Problem, leaves: Leaves, previous: FormFactors | None = None, kept: Tensor | None = None
+) -> tuple[FormFactors, Tensor]:
+    """Form factors and light factor ``[n]`` of ``leaves`` (reusing ``previous`` for the ``kept`` ones), timed."""
     t = time.perf_counter()
-    st.K = leaf_kernel(st.leaves.scene, pb.quadrature_tol, st.K, st.leaves.kept)
-    occ = st.K.info.get("occluded_facets")
-    if occ is not None and bool(occ.any()):  # user facets whose rows rest on ray-cast visibility
-        st.sampled[st.leaves.user.cpu()[occ.cpu()]] = True
+    K = leaf_kernel(leaves.scene, pb.quadrature_tol, previous, kept)
     pb.seconds["form_factors"] += time.perf_counter() - t
     t = time.perf_counter()
-    st.g = light_factor(pb.light, st.leaves.scene, st.K, st.leaves.user, pb.F)
+    g = light_factor(pb.light, leaves.scene, K, leaves.user, pb.F)
     pb.seconds["light"] += time.perf_counter() - t
+    return K, g
+
+
+def _user_values(pb: Problem, nodes: Tensor, leaves: Leaves, h: Tensor) -> Tensor:
+    """The output (irradiance or RGB) on the user's facets ``[..., F, C]`` from the gain ``h`` on ``leaves``."""
+    refl = pb.r[..., leaves.user, :]
+    vals = pb.rgb_of(h, nodes, refl) if pb.camera is not None else h * pb.S[..., None, nodes]
+    return to_user(vals, leaves, pb.F)
 
 
 def _choose_wavelengths(pb: Problem, st: Refinement, refl_leaf: Tensor) -> Tensor:
@@ -212,13 +219,16 @@ def _light_error(pb: Problem, st: Refinement, refl_leaf: Tensor) -> Tensor:
         return torch.zeros(pb.F, dtype=torch.float64)
     h_other = pb.solve_gain(st.K, refl_leaf[..., st.nodes], other)  # type: ignore[arg-type]
     mine = to_user(st.h, st.leaves, pb.F)  # type: ignore[arg-type]
-    return relative_change(to_user(h_other, st.leaves, pb.F), mine).to(torch.float64).cpu()
+    return relative_change(to_user(h_other, st.leaves, pb.F), mine).cpu()
 
 
 @torch.no_grad()
 def _solve_level(pb: Problem, st: Refinement) -> Tensor:
     """Solve the current leaves; returns the output (irradiance or RGB) on the user's facets ``[..., F, C]``."""
-    _kernel_and_light(pb, st)
+    st.K, st.g = _kernel_and_light(pb, st.leaves, st.K, st.leaves.kept)
+    occ = st.K.info.get("occluded_facets")
+    if occ is not None and bool(occ.any()):  # user facets whose rows rest on ray-cast visibility
+        st.sampled[st.leaves.user.cpu()[occ.cpu()]] = True
     refl_leaf = pb.r[..., st.leaves.user, :]
     if st.iterations == 0 and pb.camera is not None:
         st.h = _choose_wavelengths(pb, st, refl_leaf)
@@ -232,8 +242,7 @@ def _solve_level(pb: Problem, st: Refinement) -> Tensor:
         est = apriori.estimate(st.leaves.scene, st.K, r_nodes, st.g, st.h, pb.light)  # type: ignore[arg-type]
         st.est = _leaf_estimate_to_user(est, st)
         pb.seconds["estimate"] = time.perf_counter() - t
-    vals = pb.rgb_of(st.h, st.nodes, refl_leaf) if pb.camera is not None else st.h * pb.S[..., None, st.nodes]
-    return to_user(vals, st.leaves, pb.F)
+    return _user_values(pb, st.nodes, st.leaves, st.h)  # type: ignore[arg-type]
 
 
 @torch.no_grad()
@@ -244,16 +253,9 @@ def _solve_back(pb: Problem, st: Refinement, prev_user: Tensor) -> None:
         st.coarse, st.coarse_user = st.previous, prev_user
         return
     back = st.back
-    t = time.perf_counter()
-    K = leaf_kernel(back.scene, pb.quadrature_tol, None, None)  # type: ignore[union-attr]
-    pb.seconds["form_factors"] += time.perf_counter() - t
-    t = time.perf_counter()
-    g = light_factor(pb.light, back.scene, K, back.user, pb.F)  # type: ignore[union-attr]
-    pb.seconds["light"] += time.perf_counter() - t
-    refl = pb.r[..., back.user, :]  # type: ignore[union-attr]
-    h = pb.solve_gain(K, refl[..., st.nodes], g)
-    vals = pb.rgb_of(h, st.nodes, refl) if pb.camera is not None else h * pb.S[..., None, st.nodes]
-    st.coarse, st.coarse_user = Level(back, K, g), to_user(vals, back, pb.F)  # type: ignore[arg-type]
+    K, g = _kernel_and_light(pb, back)  # type: ignore[arg-type]
+    h = pb.solve_gain(K, pb.r[..., back.user, :][..., st.nodes], g)  # type: ignore[union-attr]
+    st.coarse, st.coarse_user = Level(back, K, g), _user_values(pb, st.nodes, back, h)  # type: ignore[arg-type]
     st.previous = None  # not the coarse level: its kernel can go
 
 
@@ -277,7 +279,7 @@ def _update_estimate(st: Refinement, user_vals: Tensor, extrapolate: bool) -> No
     change)."""
     if st.prev_user is None:
         return
-    delta = relative_change(st.prev_user, user_vals).to(torch.float64).cpu()
+    delta = relative_change(st.prev_user, user_vals).cpu()
     q = (delta / st.prev_delta).nan_to_num(0.5).clamp(Q_MIN, Q_MAX)
     q = torch.where(st.sampled, torch.full_like(q, Q_MAX), q)  # sampled visibility converges slowly
     # facets with ray-cast visibility are not extrapolated: on the W shape that made their estimate erratic
@@ -289,9 +291,10 @@ def _update_estimate(st: Refinement, user_vals: Tensor, extrapolate: bool) -> No
     qe = st.ratio
     # every facet split so far is extrapolated against itself one split back (st.coarse_user)
     coef = torch.where(_extrapolated(st) & extrapolate, torch.full_like(q, qe / (1 - qe)), torch.zeros_like(q))
-    low = st.coarse_user if st.coarse_user is not None else st.prev_user
-    hat = user_vals + coef.to(user_vals)[:, None] * (user_vals - low)
-    change = delta if st.hat is None else relative_change(st.hat, hat).to(torch.float64).cpu()
+    hat = user_vals  # nothing extrapolated (coef is 0) until a back level is solved
+    if st.coarse_user is not None:
+        hat = user_vals + coef.to(user_vals)[:, None] * (user_vals - st.coarse_user)
+    change = delta if st.hat is None else relative_change(st.hat, hat).cpu()
     st.est = torch.where(st.touched, change * q / (1 - q), torch.maximum(st.est, change))
     st.prev_delta = torch.where(st.touched, delta, st.prev_delta)
     st.coef, st.hat = coef, hat
