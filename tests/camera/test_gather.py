@@ -238,3 +238,81 @@ def test_source_irradiance_and_mix_direct() -> None:
     assert torch.allclose(mix_direct(op, 1.0, sky=False), torch.ones_like(op.direct))
     with pytest.raises(ValueError, match="shading='gather'"):
         mix_direct(gather_operator(scene, v, "uniform", shading="flat", cache=False), 0.5, sky=False)
+
+
+def _sunlit_blocker() -> tuple[ti.Scene, View, list[float]]:
+    """A floor under a tilted plate and a sun: a silhouette and a shadow on the floor in a 20 × 20 view."""
+    polys = [[[-2.0, -2.0, 0.0], [2.0, -2.0, 0.0], [2.0, 2.0, 0.0], [-2.0, 2.0, 0.0]],
+             [[-0.3, -0.25, 0.4], [0.3, -0.25, 0.4], [0.3, 0.25, 0.55], [-0.3, 0.25, 0.55]]]
+    scene = ti.Scene.from_polygons(torch.tensor(polys, dtype=torch.float64), material=torch.tensor([0, 1]))
+    view = View((0.15, -0.2, 2.5), (0.05, 0.05, 0.0), up=(0, 1, 0), fov_deg=58.0, height=20, width=20)
+    return scene, view, [0.7, 0.4, -1.0]
+
+
+def test_view_rays_of_some_pixels_are_those_of_the_grid() -> None:
+    v = View((0.1, -0.05, 0.08), (0.03, 0.03, 0.0), height=5, width=7)
+    eye, grid = v.rays(3)
+    pixels = torch.tensor([0, 9, 34])
+    eye2, some = v.rays(3, pixels)
+    assert torch.equal(eye, eye2) and some.shape == (27, 3)
+    g = grid.reshape(5, 3, 7, 3, 3).permute(0, 2, 1, 3, 4).reshape(35, 9, 3)  # [pixel, sub-pixel, 3]
+    assert torch.allclose(some.reshape(3, 9, 3), g[pixels], rtol=0, atol=1e-15)
+    with pytest.raises(ValueError, match=r"pixels must be flat indices in \[0, 35\)"):
+        v.rays(2, torch.tensor([35]))
+    # a Sobol net: 16 points per pixel, one in each of the 4 × 4 boxes (and of the 16 × 1 and 1 × 16 strips)
+    _, sob = v.rays(4, pixels, pattern="sobol")
+    uv = v.pinhole().project(eye + sob)  # pixel coordinates, centres at integers
+    centre = torch.stack([pixels % 7, pixels // 7], -1).double().repeat_interleave(16, 0)
+    f = uv - centre + 0.5  # in [0, 1)
+    assert bool(((f >= 0) & (f < 1)).all())
+    for nx, ny in ((4, 4), (16, 1), (1, 16), (2, 8)):
+        box = (f[:, 0] * nx).floor() * ny + (f[:, 1] * ny).floor()
+        assert all(len(b.unique()) == 16 for b in box.reshape(3, 16)), (nx, ny)
+    with pytest.raises(ValueError, match="pattern must be one of"):
+        v.rays(2, pattern="halton")
+
+
+def test_edge_pixels_cross_pixel_borders() -> None:
+    """A label change between two sub-pixel rows on either side of a pixel border marks both pixels; a change
+    inside one pixel marks it and its neighbours whose rays touch it."""
+    from torch_interreflect.camera.fragments import edge_pixels_of
+
+    label = torch.zeros(4 * 2, 3 * 2, dtype=torch.int64)  # 4 × 3 pixels, 2 × 2 rays each
+    label[4:] = 1  # the change lies on the border between pixel rows 1 and 2
+    assert edge_pixels_of(label.reshape(-1), 4, 3, 2).tolist() == [3, 4, 5, 6, 7, 8]
+    label = torch.zeros(8, 6, dtype=torch.int64)
+    label[0, 0] = 5  # one ray of pixel 0 (its top-left): only pixel 0's rays neighbour it
+    assert edge_pixels_of(label.reshape(-1), 4, 3, 2).tolist() == [0]
+    label[0, 0], label[1, 1] = 0, 5  # the bottom-right ray of pixel 0 neighbours pixels 1, 3 and 4
+    assert edge_pixels_of(label.reshape(-1), 4, 3, 2).tolist() == [0, 1, 3, 4]
+
+
+def test_edge_rays_share_out_every_pixel() -> None:
+    """``supersample=2, edge_supersample=8``: 64 rays only in the pixels where the 2 × 2 rays see an edge (a
+    silhouette, the other material, the sun's shadow; 48 of the 400 here), and every pixel's rays still make 1
+    (no background or back face in view). Against the exact pixel integral: test_image_grad's
+    ``test_edge_rays_approach_the_exact_pixel_integral``."""
+    scene, view, sun = _sunlit_blocker()
+    fine = gather_operator(scene, view, sun, supersample=8, cache=False)
+    edge = gather_operator(scene, view, sun, supersample=2, edge_supersample=8, cache=False)
+    assert 20 < edge.info["edge_pixels"] < 100 and edge.edge_supersample == 8
+    assert edge.ray_weight.numel() < fine.ray_weight.numel() / 3
+    total = edge.pixel_fragments.to_dense().sum(1) + edge.background.reshape(-1)
+    assert torch.allclose(total, torch.ones_like(total), rtol=0, atol=1e-12)
+    assert torch.equal(edge.ray_weight.unique(), torch.tensor([1 / 64, 1 / 4], dtype=torch.float64))
+    assert torch.equal(edge.background, torch.zeros_like(edge.background))
+
+
+def test_edge_rays_leave_smooth_images_alone() -> None:
+    """No edge in view (a plane filling it, uniform light): no extra ray, the very operator of uniform rays; an
+    edge supersample not above the supersample is uniform too; bad values are refused."""
+    scene, _, _ = _sunlit_blocker()
+    view = View((0.0, 0.0, 0.1), (0.0, 0.0, 0.0), up=(0, 1, 0), fov_deg=30.0, height=6, width=6)
+    plain = gather_operator(scene, view, "uniform", supersample=2, cache=False)
+    for e in (8, 2):
+        op = gather_operator(scene, view, "uniform", supersample=2, edge_supersample=e, cache=False)
+        assert op.info["edge_pixels"] == 0
+        assert torch.equal(op.gather.to_dense(), plain.gather.to_dense())
+        assert torch.equal(op.coverage.to_dense(), plain.coverage.to_dense())
+    with pytest.raises(ValueError, match="edge_supersample must be None or an integer >= 1; got 0"):
+        gather_operator(scene, view, "uniform", edge_supersample=0)

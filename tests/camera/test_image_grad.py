@@ -154,12 +154,13 @@ def _interior_mask(op, grad, stride: int = 1) -> torch.Tensor:
     return torch.nn.functional.max_pool2d(bad, k, stride=1, padding=k // 2)[0, 0] == 0
 
 
-@pytest.mark.parametrize("light", ["uniform", "sky", "plate_b"])
-@pytest.mark.parametrize("stride", [1, 2])
-def test_gathered_interior_follows_the_angle(light, stride):
+@pytest.mark.parametrize(("light", "stride", "edge"), [(light, stride, None) for light in ("uniform", "sky", "plate_b")
+                                                        for stride in (1, 2)] + [("sky", 1, 8), ("plate_b", 2, 8)])
+def test_gathered_interior_follows_the_angle(light, stride, edge):
     """Inside the facets a gathered pixel moves with its hit point, the point form factors and the solved light
     (the sky's open part, or plate B as an area light, too); with ``stride=2`` through the interpolated gather
-    points (measured 4e-8 to 7e-8 relative)."""
+    points (measured 4e-8 to 7e-8 relative); with edge rays (``edge_supersample=8``: 8 × 8 rays in the pixels by
+    the edges, the coarse points weighting their rays by their share of the pixel) the same."""
     view = View((0.04, 0.03, 0.12), (0.02, 0.03, 0.0), up=(0, 1, 0), fov_deg=50, height=24, width=24)
     w = _weights(24, 24)
 
@@ -170,7 +171,7 @@ def test_gathered_interior_follows_the_angle(light, stride):
         r = torch.linspace(0.3, 0.9, sc.num_facets, dtype=F64)[:, None]
         g = ti.lights.light_geometry(sc, ff, light)
         E = ti.solve(ff, r, g[:, None])
-        op = gather_operator(sc, view, light, cache=False, stride=stride)
+        op = gather_operator(sc, view, light, cache=False, stride=stride, edge_supersample=edge)
         gr = image_gradient(op, sc, light) if grad else None
         return gathered_radiance(op, r, E, torch.ones(1, dtype=F64), gradient=gr)[0], ang, op, gr
 
@@ -209,14 +210,35 @@ def _exact_sunlit_floor(shift: float, d: list[float], cos_of: list[float] | None
     return img - _exact_image(torch.stack([shadow, b]), [value, value], TOP_VIEW)
 
 
-def test_sun_shadow_and_silhouette_edges_match_exact_coverage():
+def test_edge_rays_approach_the_exact_pixel_integral():
+    """Direct sunlight on a floor under a blocker, seen from above, against the exact pixel integral: edge rays at
+    the points of a Sobol net (``supersample=2, edge_supersample=8``, 100 edge pixels) are 0.26 % RMS off (16:
+    0.14 %), uniform grids 3.0 % (2 × 2), 1.8 % (8 × 8) and 1.4 % (16 × 16, 19 times the rays): the edges here run
+    along the pixel rows, where a grid places them to a sub-pixel row only."""
+    d = [1.5, 0.2, -1.0]
+    sc = _floor_and_blocker(torch.tensor(0.1, dtype=F64))
+    exact = _exact_sunlit_floor(0.1, d)
+    r = torch.tensor([[0.6], [0.5]], dtype=F64)
+    err, rays = {}, {}
+    for ss, e in ((2, None), (8, None), (2, 8), (2, 16)):
+        op = gather_operator(sc, TOP_VIEW, d, cache=False, supersample=ss, edge_supersample=e)
+        img = gathered_radiance(op, r, torch.zeros(2, 1, dtype=F64), torch.ones(1, dtype=F64))[0]
+        err[ss, e], rays[ss, e] = float((img - exact).norm() / exact.norm()), op.ray_weight.numel()
+    assert err[2, None] > 0.02 and err[8, None] > 0.012
+    assert err[2, 8] < 4e-3 and err[2, 16] < 2e-3, err
+    assert rays[2, 8] < rays[8, None] / 4
+
+
+@pytest.mark.parametrize("edge", [None, 12])
+def test_sun_shadow_and_silhouette_edges_match_exact_coverage(edge):
     """A blocker over a sunlit floor, direct light only: moving it moves its silhouette and its shadow in the
     image (measured 9e-9 relative); turning the sun moves the shadow's edges (their term alone against the exact
-    shadow's differences, measured 1.3e-9)."""
+    shadow's differences, measured 1.3e-9). The same with 12 × 12 rays in the edge pixels."""
     shift = torch.tensor(0.1, dtype=F64, requires_grad=True)
     d = torch.tensor([1.5, 0.2, -1.0], dtype=F64, requires_grad=True)
     sc = _floor_and_blocker(shift)
-    op = gather_operator(sc, TOP_VIEW, d.detach(), cache=False)
+    op = gather_operator(sc, TOP_VIEW, d.detach(), cache=False, edge_supersample=edge)
+    assert (op.info["edge_pixels"] > 0) == (edge is not None)
     gr = image_gradient(op, sc, d)
     assert gr.shadow_pixel.numel() > 0
     r = torch.tensor([[0.6], [0.5]], dtype=F64)

@@ -59,7 +59,18 @@ def _light_key(light: Any) -> Any:
     return (str(t.dtype), tuple(t.shape), t.numpy().tobytes())
 
 
-def _direct(scene: Scene, light: Any, frag: dict[str, Tensor], caster: RayCaster, covered: Tensor | None,
+def _sun_of(light: Any, num_facets: int) -> Tensor | None:
+    """The light as a unit sun direction ``[3]`` float64 (CPU), or ``None`` when it is not a direction."""
+    if isinstance(light, str):
+        return None
+    t = torch.as_tensor(light).detach().cpu()
+    if t.dtype == torch.bool or t.numel() != 3 or t.ndim != 1 or num_facets == 3:
+        return None
+    t = t.to(torch.float64)
+    return t / t.norm()
+
+
+def _direct(scene: Scene, light: Any, frag: dict[str, Tensor], covered: Tensor | None,
             factors: Tensor | None) -> Tensor:
     """``g0`` per fragment (float64) for the light (see the module docstring)."""
     h = frag["facet"]
@@ -81,18 +92,11 @@ def _direct(scene: Scene, light: Any, frag: dict[str, Tensor], caster: RayCaster
         if t.shape != (F,):
             raise ShapeError(f"an area-light mask must have shape [{F}] (one flag per facet); got {list(t.shape)}")
         return math.pi * torch.sparse.mm(factors, t.to(torch.float64)[:, None])[:, 0]
-    if t.numel() == 3 and t.ndim == 1 and F != 3:
-        d = t.to(torch.float64) / t.to(torch.float64).norm()
+    d = _sun_of(light, F)
+    if d is not None:
         ray_h = h[frag["ray_fragment"]]
         cos = (-(sc.normals[ray_h] @ d)).clamp_min(0)
-        lit = cos > 0
-        free = torch.zeros_like(cos)
-        if bool(lit.any()):
-            pts = frag["ray_point"][lit] + caster.eps * sc.normals[ray_h[lit]]
-            escaped = caster.first_hit(pts.numpy(), (-d).expand(pts.shape[0], 3).numpy()) < 0
-            free[lit] = torch.from_numpy(escaped).to(torch.float64)
-        per_ray = cos * free
-        frag["ray_free"] = free  # kept for the image's gradient (image_grad)
+        per_ray = cos * frag["ray_free"]  # the shadow flags of primary_fragments(sun=), kept for image_grad
         n = torch.bincount(frag["ray_fragment"], minlength=h.numel()).to(torch.float64)
         return torch.zeros(h.numel(), dtype=torch.float64).index_add_(0, frag["ray_fragment"], per_ray) / n
     if not t.is_floating_point() or t.shape != (F,):
@@ -119,19 +123,24 @@ class Gather(nn.Module):
             sees no facet (``g0`` of a uniform sky is ``π`` times it). ``[K]`` (``None`` likewise).
         background: Fraction of each pixel that sees no facet. ``[H, W]``.
         fragment_pixel: The pixel (``row · W + column``) of each fragment. ``[K]`` int64.
-        ray_index: The sub-pixel rays (of :meth:`View.rays`) that hit a facet's front. ``[R]`` int64.
+        ray_direction: The direction of each sub-pixel ray that hits a facet's front (as :meth:`View.rays`).
+            ``[R, 3]`` float64.
+        ray_weight: Its share of its pixel (``1/s²``, or ``1/e²`` in an edge pixel). ``[R]`` float64.
         ray_fragment: The fragment of each of them. ``[R]`` int64.
         ray_free: For a sun: 1 where the ray's hit point sees the sun unblocked, else 0. ``[R]`` (else ``None``).
         kernel: With ``stride > 1``: the coarse gather points, ``(ray_point [R], facet [Kc], weights [K, Kc],
             factors [Kc, F])`` (:func:`~torch_interreflect.camera.fragments.coarse_points`); else ``None``.
-        view: The :class:`~torch_interreflect.camera.View`; ``supersample``, ``samples``: the settings.
-        info: ``pairs``, ``rays`` and ``seconds`` (per stage) of the build.
+        view: The :class:`~torch_interreflect.camera.View`; ``supersample``, ``edge_supersample``, ``samples``: the
+            settings.
+        info: ``pairs``, ``rays`` and ``seconds`` (per stage) of the build; ``edge_pixels``, the pixels given
+            ``edge_supersample`` rays.
     """
 
     def __init__(self, view: View, frag: dict[str, Tensor], num_facets: int, dtype: torch.dtype,
-                 device: torch.device, supersample: int, samples: int) -> None:
+                 device: torch.device, supersample: int, samples: int, edge_supersample: int | None = None) -> None:
         super().__init__()
         self.view, self.supersample, self.samples = view, int(supersample), int(samples)
+        self.edge_supersample = None if edge_supersample is None else int(edge_supersample)
         self.height, self.width, self.num_facets = view.height, view.width, int(num_facets)
         K = frag["facet"].numel()
         p, w = frag["pixel"], frag["weight"]
@@ -142,7 +151,8 @@ class Gather(nn.Module):
         self.register_buffer("coverage", cov.to(device), persistent=False)
         self.register_buffer("fragment_facet", frag["facet"].to(device), persistent=False)
         self.register_buffer("fragment_pixel", frag["pixel"].to(device), persistent=False)
-        self.register_buffer("ray_index", frag["ray_index"].to(device), persistent=False)
+        self.register_buffer("ray_direction", frag["ray_direction"].to(device), persistent=False)
+        self.register_buffer("ray_weight", frag["ray_weight"].to(device), persistent=False)
         self.register_buffer("ray_fragment", frag["ray_fragment"].to(device), persistent=False)
         self.register_buffer("ray_free", None, persistent=False)
         self.kernel: tuple[Tensor, Tensor, Tensor, Tensor] | None = None
@@ -150,7 +160,7 @@ class Gather(nn.Module):
         self.register_buffer("gather", None, persistent=False)
         self.register_buffer("direct", None, persistent=False)
         self.register_buffer("open_sky", None, persistent=False)
-        self.info: dict[str, Any] = {}
+        self.info: dict[str, Any] = {"edge_pixels": int(frag["edge_pixels"].numel())}
 
     @property
     def num_fragments(self) -> int:
@@ -173,7 +183,8 @@ class Gather(nn.Module):
 
     def extra_repr(self) -> str:
         return (f"height={self.height}, width={self.width}, facets={self.num_facets}, "
-                f"fragments={self.num_fragments}, supersample={self.supersample}, samples={self.samples}")
+                f"fragments={self.num_fragments}, supersample={self.supersample}, "
+                f"edge_supersample={self.edge_supersample}, samples={self.samples}")
 
 
 def _cache_key(scene: Scene, view: View, light: Any, s: int, samples: int, seed: int) -> tuple:
@@ -194,6 +205,7 @@ def gather_operator(
     shading: str = "gather",
     stride: int = 1,
     cache: bool = True,
+    edge_supersample: int | None = None,
 ) -> Gather:
     """Cast a view's rays once and build its gather operator (cached per scene, view, light and settings).
 
@@ -204,6 +216,13 @@ def gather_operator(
             ``[3]`` (the way the light travels), a material name or boolean mask ``[F]`` (area light), or a factor
             ``[F]`` (used per hit facet).
         supersample: Sub-pixel rays per pixel side (anti-aliasing; the direct sun is shadow-tested per ray).
+        edge_supersample: ``e``, for ``e²`` rays at the points of a Sobol net in the pixels where the
+            ``supersample`` rays see an edge: a change of plane or material, the background, a back face or a sun
+            shadow between neighbouring rays, across pixel borders too
+            (:func:`~torch_interreflect.camera.fragments.primary_fragments`). ``None`` (or ``≤ supersample``):
+            uniform rays. On 4 generator scenes at 32 × 32 (18–33 % of the pixels by edges), ``supersample=2`` with
+            ``e = 8`` was 0.4–0.7 % RMS from ``e = 64`` (uniform 8 × 8 rays: 0.5–1.7 %, 2 × 2: 3.4–9.0 %), in about
+            30 % less time than uniform 8 × 8 rays; 16: 0.1–0.2 %.
         samples: Visibility rays per side of a target facet for pairs a third facet could block.
         seed: Seed of the visibility jitter.
         shading: ``"gather"`` builds everything; ``"flat"`` only the coverage (no kernel, no light needed).
@@ -234,14 +253,19 @@ def gather_operator(
         raise ValueError(f"supersample must be an integer >= 1; got {supersample!r}")
     if isinstance(stride, bool) or int(stride) != stride or int(stride) < 1:
         raise ValueError(f"stride must be an integer >= 1; got {stride!r}")
-    key = (*_cache_key(scene, view, light, int(supersample), int(samples), int(seed)), int(stride))
+    if edge_supersample is not None and (isinstance(edge_supersample, bool) or int(edge_supersample) !=
+                                         edge_supersample or int(edge_supersample) < 1):
+        raise ValueError(f"edge_supersample must be None or an integer >= 1; got {edge_supersample!r}")
+    edge = None if edge_supersample is None or int(edge_supersample) <= int(supersample) else int(edge_supersample)
+    key = (*_cache_key(scene, view, light, int(supersample), int(samples), int(seed)), int(stride), edge)
     scene = scene.detach()  # ray casting and the kernel are constants of the geometry (see image_grad for its gradient)
     op = _CACHE.get(key) if cache else None
     if op is None:
         t0 = time.perf_counter()
         caster = RayCaster(scene.to(torch.float64).to("cpu"))
-        frag = primary_fragments(scene, view, int(supersample), caster)
-        op = Gather(view, frag, scene.num_facets, scene.dtype, scene.device, int(supersample), int(samples))
+        frag = primary_fragments(scene, view, int(supersample), caster, edge_supersample=edge,
+                                 sun=_sun_of(light, scene.num_facets))
+        op = Gather(view, frag, scene.num_facets, scene.dtype, scene.device, int(supersample), int(samples), edge)
         op._frag, op._caster = frag, caster  # kept until the kernel is built
         op.info["seconds"] = {"primary": time.perf_counter() - t0}
     if shading == "gather" and op.gather is None:
@@ -259,7 +283,7 @@ def gather_operator(
             covered = torch.sparse.mm(weights, covered[:, None])[:, 0]
             info["points"] = int(centres.shape[0])
         t0 = time.perf_counter()
-        op._set_kernel(factors, _direct(scene, light, frag, op._caster, covered, factors), covered)
+        op._set_kernel(factors, _direct(scene, light, frag, covered, factors), covered)
         if "ray_free" in frag:
             op.register_buffer("ray_free", frag["ray_free"].to(op.background), persistent=False)
         op.info.update(pairs=info["pairs"], rays=info["rays"], points=info.get("points", op.num_fragments))

@@ -52,6 +52,7 @@ from ..geometry.edges import candidate_edges
 from ..geometry.raycast import RayCaster
 from ..geometry.scene import Scene
 from .edge_samples import edge_samples, shadow_samples
+from .fragments import relative_weights
 from .gather import Gather
 from .image_terms import ImageGradient
 
@@ -65,16 +66,20 @@ PAIR_CHUNK = 1 << 18
 
 def _hit_points(op: Gather, scene: Scene) -> tuple[Tensor, Tensor]:
     """Differentiable hit points of the front rays ``[R, 3]`` and their facets ``[R]``."""
-    eye, dirs = op.view.rays(op.supersample)
-    ray_index = op.ray_index.cpu()
-    d = dirs[ray_index].to(device=scene.device, dtype=scene.dtype)
-    e = eye.to(device=scene.device, dtype=scene.dtype)
+    d = op.ray_direction.to(device=scene.device, dtype=scene.dtype)
+    e = torch.tensor(op.view.eye, device=scene.device, dtype=scene.dtype)
     h = op.fragment_facet.cpu()[op.ray_fragment.cpu()].to(scene.device)
     return ray_plane_points(e, d, scene.centroids[h], scene.normals[h]), h
 
 
-def _group_mean(values: Tensor, group: Tensor, size: int) -> Tensor:
-    count = torch.bincount(group, minlength=size).to(values.dtype).clamp_min(1)
+def _group_mean(values: Tensor, group: Tensor, size: int, weight: Tensor | None = None) -> Tensor:
+    """Mean of ``values [R, ...]`` per group (weighted by ``weight [R]`` when given), ``[size, ...]``."""
+    if weight is None:
+        count = torch.bincount(group, minlength=size).to(values.dtype).clamp_min(1)
+    else:
+        weight = weight.to(values)
+        count = torch.zeros(size, dtype=values.dtype, device=values.device).index_add(0, group, weight)
+        values = weight.reshape(-1, *([1] * (values.dim() - 1))) * values
     out = torch.zeros(size, *values.shape[1:], dtype=values.dtype, device=values.device).index_add(0, group, values)
     return out / count.reshape(-1, *([1] * (values.dim() - 1)))
 
@@ -83,6 +88,7 @@ def _kernel_delta(op: Gather, scene: Scene, x_ray: Tensor,
                   caster: RayCaster) -> tuple[Tensor, Tensor | None, Tensor, Tensor, Tensor]:
     """``(delta [Kp, F] sparse COO, weights | None, rows [P], cols [P], delta values [P])`` of the gather
     points."""
+    ray_weight = None  # a fragment's rays share one weight; a coarse point's are weighted as coarse_points does
     if op.kernel is None:
         group, facet, weights = op.ray_fragment.cpu(), op.fragment_facet.cpu(), None
         g = op.gather.cpu()  # CSR: rows in order, columns ascending within a row
@@ -91,11 +97,12 @@ def _kernel_delta(op: Gather, scene: Scene, x_ray: Tensor,
         cols, vals = g.col_indices(), g.values()
     else:
         group, facet, weights, g = op.kernel
+        ray_weight = relative_weights(op.ray_weight.cpu()).to(scene.device)
         g = g.coalesce()
         (rows, cols), vals = g.indices(), g.values()
     shape = tuple(g.shape)
     group, facet = group.to(scene.device), facet.to(scene.device)
-    x = _group_mean(x_ray, group, int(facet.numel()))
+    x = _group_mean(x_ray, group, int(facet.numel()), ray_weight)
     rows, cols = rows.to(scene.device), cols.to(scene.device)
     vals = vals.to(device=scene.device, dtype=scene.dtype)
     eps = plane_eps(scene)

@@ -19,11 +19,13 @@ __all__ = ["render_view"]
 
 def render_view(scene: Scene, reflectance: Tensor, irradiance: Tensor, spd: Tensor | None, camera: Camera | None,
                 view: View, light: str | Tensor | Sequence[float] = "uniform", *, shading: str = "gather",
-                supersample: int = 3, samples: int = 4, geometry: Scene | None = None) -> Tensor:
+                supersample: int = 3, samples: int = 4, geometry: Scene | None = None,
+                edge_supersample: int | None = None) -> Tensor:
     """One call from solved facets to an image: the cached :func:`gather_operator`, then the image.
 
     ``reflectance``, ``irradiance`` (solved for ``E0 = g ⊗ spd``, ``g`` the light's geometric factor), ``spd`` and
-    ``shading`` as for :func:`gathered_radiance`; ``view``, ``light``, ``supersample`` and ``samples`` as for
+    ``shading`` as for :func:`gathered_radiance`; ``view``, ``light``, ``supersample``, ``edge_supersample`` (e.g.
+    16: a path tracer's pixel integral, at a fraction of uniform 16 × 16 rays) and ``samples`` as for
     :func:`gather_operator`. With a :class:`~torch_interreflect.camera.Camera` the result is camera RGB
     ``[..., C, H, W]`` (:func:`gathered_image`), with ``camera=None`` spectral radiance ``[..., L, H, W]``.
 
@@ -31,7 +33,8 @@ def render_view(scene: Scene, reflectance: Tensor, irradiance: Tensor, spd: Tens
     direction require grad, the image also passes gradients to them
     (:func:`~torch_interreflect.camera.image_grad.image_gradient`; values unchanged).
     """
-    op = gather_operator(scene, view, light, supersample=supersample, samples=samples, shading=shading)
+    op = gather_operator(scene, view, light, supersample=supersample, samples=samples, shading=shading,
+                         edge_supersample=edge_supersample)
     moving = geometry if geometry is not None else scene
     light_grad = isinstance(light, Tensor) and light.requires_grad
     gradient = None

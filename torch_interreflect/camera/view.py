@@ -20,7 +20,10 @@ from kornia.geometry.camera import PinholeCamera
 from ..errors import ValueRangeError
 from .projection import look_at
 
-__all__ = ["View"]
+__all__ = ["PATTERNS", "View"]
+
+#: Sub-pixel ray patterns of :meth:`View.rays`.
+PATTERNS = ("grid", "sobol")
 
 
 def _triple(v: Sequence[float] | torch.Tensor, name: str) -> tuple[float, float, float]:
@@ -85,23 +88,45 @@ class View:
         return look_at(self.eye, self.target, self.height, self.width, up=self.up, fov_deg=self.fov_deg,
                        dtype=dtype)
 
-    def rays(self, supersample: int = 1) -> tuple[torch.Tensor, torch.Tensor]:
+    def rays(self, supersample: int = 1, pixels: torch.Tensor | None = None,
+             pattern: str = "grid") -> tuple[torch.Tensor, torch.Tensor]:
         """The eye and the (unnormalised) directions of the sub-pixel rays, float64.
 
-        Pixel ``(u, v)`` is split into ``s × s`` sub-pixels whose centres are ``u − ½ + (i + ½)/s``; the rays come
-        in row-major order of the sub-pixel grid ``[H·s, W·s]``, as in :func:`~torch_interreflect.camera.project`.
+        ``pattern="grid"``: pixel ``(u, v)`` is split into ``s × s`` sub-pixels whose centres are
+        ``u − ½ + (i + ½)/s``; the rays come in row-major order of the sub-pixel grid ``[H·s, W·s]``, as in
+        :func:`~torch_interreflect.camera.project`. ``"sobol"``: the ``s²`` points of a scrambled Sobol sequence
+        (:class:`torch.quasirandom.SobolEngine`, seed 0), the same in every pixel. For ``s²`` a power of two these
+        form a (0, m, 2)-net: each of the ``s²`` equal boxes ``2^-a × 2^-b`` (``a + b = m``) of the pixel holds one
+        point, so a straight edge across the pixel is placed to ``~1/s²`` of it rather than the grid's ``~1/s``.
+        With ``pixels`` (flat indices ``row · W + column``, ``[N]``), only those pixels' rays, pixel by pixel, each
+        pixel's ``s²`` rays in the pattern's order.
 
         Returns:
-            ``(eye [3], directions [H·s·W·s, 3])`` in metres (directions point at depth 1 along the axis).
+            ``(eye [3], directions [H·s·W·s, 3])`` (``[N·s², 3]`` with ``pixels``) in metres (directions point at
+            depth 1 along the axis).
         """
         if isinstance(supersample, bool) or int(supersample) != supersample or int(supersample) < 1:
             raise ValueError(f"supersample must be an integer >= 1; got {supersample!r}")
+        if pattern not in PATTERNS:
+            raise ValueError(f"pattern must be one of {list(PATTERNS)}; got {pattern!r}")
         s, h, w = int(supersample), self.height, self.width
         pin = self.pinhole()
         off = (torch.arange(s, dtype=torch.float64) + 0.5) / s - 0.5
-        us = (torch.arange(w, dtype=torch.float64)[:, None] + off).reshape(-1)
-        vs = (torch.arange(h, dtype=torch.float64)[:, None] + off).reshape(-1)
-        vv, uu = torch.meshgrid(vs, us, indexing="ij")
+        if pixels is None and pattern == "grid":
+            us = (torch.arange(w, dtype=torch.float64)[:, None] + off).reshape(-1)
+            vs = (torch.arange(h, dtype=torch.float64)[:, None] + off).reshape(-1)
+            vv, uu = torch.meshgrid(vs, us, indexing="ij")
+        else:
+            p = torch.arange(h * w) if pixels is None else torch.as_tensor(pixels, dtype=torch.int64).reshape(-1)
+            if p.numel() and (int(p.min()) < 0 or int(p.max()) >= h * w):
+                raise ValueError(f"pixels must be flat indices in [0, {h * w}); got {int(p.min())}..{int(p.max())}")
+            if pattern == "sobol":
+                q = torch.quasirandom.SobolEngine(2, scramble=True, seed=0).draw(s * s, dtype=torch.float64) - 0.5
+                du, dv = q[:, 0], q[:, 1]
+            else:
+                dv, du = torch.meshgrid(off, off, indexing="ij")
+            vv = (p // w).to(torch.float64)[:, None] + dv.reshape(1, -1)
+            uu = (p % w).to(torch.float64)[:, None] + du.reshape(1, -1)
         pix = torch.stack([uu, vv], -1).reshape(1, -1, 2)
         pts = pin.unproject(pix, torch.ones(1, pix.shape[1], 1, dtype=torch.float64))[0]
         eye = torch.tensor(self.eye, dtype=torch.float64)

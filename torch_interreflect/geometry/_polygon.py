@@ -25,6 +25,7 @@ __all__ = [
     "facing_others",
     "plane_eps",
     "plane_groups",
+    "plane_ids",
     "quad_coordinates",
     "rotate_to_plane_edge",
     "signed_distances",
@@ -184,6 +185,20 @@ def plane_eps(scene: Scene) -> float:
     return size * max(1e-9, 16.0 * torch.finfo(scene.dtype).eps)
 
 
+def plane_ids(sc: Scene, eps: float) -> Tensor:
+    """The plane of each facet ``[F]`` int64: facets with equal ids are coplanar and face the same way.
+
+    Normals and offsets are rounded well above the float noise of the scene's dtype (``eps``, e.g.
+    :func:`plane_eps`); a boundary between two rounding cells only splits a plane into two ids.
+    """
+    corners, normals = sc.corners, sc.normals
+    offs = (normals * sc.centroids).sum(-1)
+    size = float((corners.reshape(-1, 3).max(0).values - corners.reshape(-1, 3).min(0).values).norm())
+    res = max(1e-6, 100.0 * eps / max(size, 1e-300))
+    key = torch.round(torch.cat([normals, offs[:, None] / max(size, 1e-300)], dim=1) / res)
+    return torch.unique(key, dim=0, return_inverse=True)[1]
+
+
 def plane_groups(sc: Scene, eps: float, frames: bool = False) -> tuple[Tensor, ...] | None:
     """The planes of the scene's coplanar facet groups that could block anything: normal ``[G, 3]``, offset
     ``[G]`` and the group's bounding box ``lo, hi [G, 3]``; None when no plane has corners on both sides.
@@ -195,12 +210,7 @@ def plane_groups(sc: Scene, eps: float, frames: bool = False) -> tuple[Tensor, .
     normals and offsets, so they may lie off the first member's plane by up to ~``1e-4`` of the scene's size)."""
     corners, normals, cent = sc.corners, sc.normals, sc.centroids
     offs = (normals * cent).sum(-1)
-    size = float((corners.reshape(-1, 3).max(0).values - corners.reshape(-1, 3).min(0).values).norm())
-    # group facets by plane (normal and offset rounded well above the float noise of the scene's dtype; a
-    # boundary between two rounding cells only splits a group, which stays conservative)
-    res = max(1e-6, 100.0 * eps / size)
-    key = torch.round(torch.cat([normals, offs[:, None] / size], dim=1) / res)
-    _, plane_of = torch.unique(key, dim=0, return_inverse=True)
+    plane_of = plane_ids(sc, eps)
     n_planes = int(plane_of.max()) + 1
     lo = corners.min(1).values
     hi = corners.max(1).values
