@@ -68,8 +68,11 @@ def add_generate_parser(sub: Any) -> argparse.ArgumentParser:
     p.add_argument("--size", type=argtypes.image_size, default=(64, 64), help="image size HxW (default 64x64)")
     p.add_argument("--bounces", type=argtypes.bounce_count, nargs="+", default=[None, 1, 2],
                    help="variants: inf (always written) and n-bounce models, e.g. 1 (direct only) 2 (default: inf 1 2)")
-    p.add_argument("--supersample", type=argtypes.positive_int, default=2,
-                   help="sub-pixels per pixel side (default 2)")
+    p.add_argument("--supersample", type=argtypes.positive_int, default=GeneratorConfig.supersample,
+                   help=f"sub-pixel rays per pixel side (default {GeneratorConfig.supersample})")
+    p.add_argument("--edge-supersample", type=argtypes.positive_int, default=GeneratorConfig.edge_supersample,
+                   help="rays per pixel side in pixels where those rays see an edge (gather shading; default "
+                        f"{GeneratorConfig.edge_supersample}; 1 or at most --supersample: uniform)")
     p.add_argument("--shading", choices=SHADINGS, default="gather",
                    help="gather: per-pixel final gather, soft shadows (default); flat: one colour per facet, faster")
     p.add_argument("--no-split-contacts", action="store_true",
@@ -90,7 +93,7 @@ def _run_generate(args: argparse.Namespace) -> int:
         camera=args.camera, size=args.size, bounces=tuple(dict.fromkeys([None, *args.bounces])),
         supersample=args.supersample, geometry=not args.no_geometry, shading=args.shading,
         split_contacts=not args.no_split_contacts, visibility_samples=args.visibility_samples,
-        gather_stride=args.gather_stride,
+        gather_stride=args.gather_stride, edge_supersample=args.edge_supersample,
     )
     res = generate(args.out, config, shard=args.shard, progress=not args.no_progress)
     removed = f", removed {len(res.removed)} stale temporary files" if res.removed else ""

@@ -29,7 +29,7 @@ MANIFEST_DIR = "manifest"
 #: Image shadings of :attr:`GeneratorConfig.shading`.
 SHADINGS: tuple[str, ...] = ("gather", "flat")
 #: Values of fields added after the first release, for configurations stored before them.
-_BEFORE_FIELD: dict[str, Any] = {"shading": "flat", "split_contacts": False}
+_BEFORE_FIELD: dict[str, Any] = {"shading": "flat", "split_contacts": False, "edge_supersample": None}
 
 
 def _check_int(name: str, value: Any, low: int) -> int:
@@ -50,7 +50,15 @@ class GeneratorConfig:
         camera: Camera sensitivities (:meth:`torch_interreflect.Camera.from_colour` name).
         size: Image ``(height, width)`` in pixels.
         bounces: Variants to render: ``None`` (infinite bounces, always the main image) and ``n ≥ 1``.
-        supersample: Sub-pixels per pixel side for the coverage (anti-aliasing).
+        supersample: Sub-pixel rays per pixel side (anti-aliasing: coverage, hit points and sun shadows).
+        edge_supersample: With ``"gather"``: ``e``, for ``e²`` rays (a Sobol net) in the pixels where the
+            ``supersample`` rays see an edge (``edge_supersample`` of
+            :func:`~torch_interreflect.camera.gather_operator`); ``None``: uniform rays. The image then approximates
+            the pixel integral of a camera or of a path tracer's box filter. Against Mitsuba 3 at 2 × 2,048 spp on
+            three sun + sky test scenes at 32 × 32, the per-pixel RMS difference was 3.2–6.7 % with uniform 2 × 2
+            rays (the default before 0.2.0, which folders written then keep), 1.0–1.3 % with ``e = 8`` and
+            0.9–1.2 % with 16, Mitsuba's own noise being 0.9–1.0 %. On 4 generator scenes against ``e = 64``: 0.4–0.7 %
+            with 8, 0.1–0.2 % with 16. The cost at 32 × 32: ~8 % fewer samples per second with 8, ~24 % with 16.
         wavelengths: ``(start, stop, step)`` of the grid in nm.
         geometry: Also write the ``_geometry.npz`` file.
         basis_components: Components of the reflectance PCA basis random spectra are drawn from.
@@ -87,6 +95,7 @@ class GeneratorConfig:
     split_contacts: bool = True
     visibility_samples: int = 2
     gather_stride: int = 1
+    edge_supersample: int | None = 8
 
     def __post_init__(self) -> None:
         _check_int("count", self.count, 0)
@@ -114,6 +123,10 @@ class GeneratorConfig:
             raise ValueError(f"split_contacts must be True or False; got {self.split_contacts!r}")
         _check_int("visibility_samples", self.visibility_samples, 1)
         _check_int("gather_stride", self.gather_stride, 1)
+        if self.edge_supersample is not None:
+            _check_int("edge_supersample", self.edge_supersample, 1)
+            if self.edge_supersample <= self.supersample:  # uniform rays: one identity, as None
+                object.__setattr__(self, "edge_supersample", None)
         object.__setattr__(self, "wavelengths", tuple(float(v) for v in self.wavelengths))
 
     def same_samples(self, other: GeneratorConfig) -> bool:
@@ -126,7 +139,7 @@ class GeneratorConfig:
         if d.shading == "flat":
             default = GeneratorConfig()
             d = dataclasses.replace(d, visibility_samples=default.visibility_samples,
-                                    gather_stride=default.gather_stride)
+                                    gather_stride=default.gather_stride, edge_supersample=default.edge_supersample)
         return d
 
     def to_json(self) -> dict[str, Any]:

@@ -88,17 +88,26 @@ def code_for_rgb(rgb: Tensor, basis: tuple[Tensor, Tensor, Tensor], camera: Came
     return code.detach()
 
 
-def gathered_model(geometry: dict[str, Any]) -> tuple[Any, Tensor] | None:
+def gathered_model(geometry: dict[str, Any], edge_supersample: int | None = None) -> tuple[Any, Tensor] | None:
     """For a gathered sample (``geometry["shading"]``), its per-pixel model: the gather operator rebuilt from the
-    facets and the view, and the direct term of its light mix ``[K]``; ``None`` for a flat one."""
+    facets and the view, and the direct term of its light mix ``[K]``; ``None`` for a flat one.
+
+    ``edge_supersample`` (rays per pixel side in edge pixels, as :func:`~torch_interreflect.camera.gather_operator`)
+    overrides the sample's own, e.g. to model an image that is a pixel integral (a camera's, a path tracer's) with a
+    sample made with uniform 2 × 2 rays (before 0.2.0).
+    """
     sh = geometry.get("shading")
     if sh is None:
         return None
+    if edge_supersample is not None and (isinstance(edge_supersample, bool) or int(edge_supersample) !=
+                                         edge_supersample or int(edge_supersample) < 1):
+        raise ValueError(f"edge_supersample must be None or an integer >= 1; got {edge_supersample!r}")
     scene = Scene.from_parts(sh["corners"].to(torch.float64), sh["is_triangle"], geometry["material"].long(), None)
     v = sh["view"]
     view = View(v["eye"], v["target"], v["up"], fov_deg=v["fov_deg"], height=v["height"], width=v["width"])
+    edge = sh.get("edge_supersample") if edge_supersample is None else int(edge_supersample)
     op = gather_operator(scene, view, sh["sun"], supersample=sh["supersample"], samples=sh["samples"],
-                         stride=sh["stride"], cache=False)
+                         stride=sh["stride"], cache=False, edge_supersample=edge)
     return op, mix_direct(op, sh["ambient_weight"], sh["sky"])
 
 
@@ -122,6 +131,7 @@ def refine_illuminant(
     reflectance_components: int = 30,
     steps: int = 150,
     tol: float = 1e-6,
+    edge_supersample: int | None = None,
 ) -> RefinedIlluminant:
     """Refine ``init_rgb`` by re-rendering ``image`` through the interreflection model (module docstring).
 
@@ -138,6 +148,12 @@ def refine_illuminant(
             2.45° with 12 and 2.28° with 20 (40 images); from the network, 3.77° / 3.22° / 2.79° / 2.40° (30).
         steps: L-BFGS iterations.
         tol: Relative residual of the solves.
+        edge_supersample: For a gathered sample: ``e`` for ``e²`` rays in the edge pixels of the model's image
+            (:func:`gathered_model`; ``None``: the sample's own). The model should resolve the image's pixel
+            integral. Started from the true illuminant on 20 of the study's path-traced images (Mitsuba, 256 spp)
+            made with uniform 2 × 2 rays (before 0.2.0), the median error was 2.33° (mean 4.15°) modelled with
+            those rays, and 1.6–2.2° (mean 3.2–3.6°) with any of uniform 8 × 8 or 16 × 16 rays or edge rays 8 or 16,
+            whose differences are within a 20-image median's noise; residuals 3–7 %, Mitsuba's noise mostly.
 
     Returns:
         A :class:`RefinedIlluminant`.
@@ -156,7 +172,7 @@ def refine_illuminant(
     r_sigma = ((data - r_mean) @ r_comps.T).std(0)
     cov, obs, material = _problem(image, geometry)
     obs = obs / obs.norm().clamp_min(1e-300)
-    gathered = gathered_model(geometry)  # the image's own per-pixel model when the sample was gathered
+    gathered = gathered_model(geometry, edge_supersample)  # the image's own per-pixel model when it was gathered
     seen = geometry["coverage"]
     seen = ((seen.to_dense() if seen.layout != torch.strided else seen).sum(1) > 1e-9)
     ff, g = geometry["form_factors"], geometry["light_factor"].to(torch.float64)

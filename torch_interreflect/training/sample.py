@@ -167,7 +167,7 @@ def _gathered(config: GeneratorConfig, d: _Drawn, K: Any, r: Tensor, e0: Tensor,
     view = View(v["eye"], v["target"], v["up"], fov_deg=v["fov_deg"], height=h, width=w)
     sun = torch.tensor(light["sun_direction"], dtype=torch.float64)
     op = gather_operator(d.scene, view, sun, supersample=config.supersample, samples=config.visibility_samples,
-                         stride=config.gather_stride, cache=False)
+                         stride=config.gather_stride, cache=False, edge_supersample=config.edge_supersample)
     direct = mix_direct(op, light["ambient_weight"], light["ambient"] == "sky")  # [K]
     E = torch.stack([source_irradiance(K, r, e0, b) for b in config.bounces])  # [V, F, L]
     images = gathered_image(op, r, E, d.spd.to(e0), cam, direct=direct).cpu()  # [V, 3, H, W], one sparse product
@@ -217,7 +217,9 @@ def _geometry(config: GeneratorConfig, d: _Drawn, proj: Any) -> dict[str, np.nda
             "corners": d.scene.corners.double().numpy(),
             "is_triangle": d.scene.is_triangle.numpy(),
             "view": np.array([*v["eye"], *v["target"], *v["up"], v["fov_deg"], *config.size], dtype=np.float64),
-            "gather": np.array([config.supersample, config.visibility_samples, config.gather_stride], dtype=np.int64),
+            "gather": np.array([config.supersample, config.visibility_samples, config.gather_stride,
+                                *([] if config.edge_supersample is None else [config.edge_supersample])],
+                               dtype=np.int64),
             "sun": np.array(light["sun_direction"], dtype=np.float64),
             "ambient": np.array([light["ambient"] == "sky", light["ambient_weight"]], dtype=np.float64),
         }

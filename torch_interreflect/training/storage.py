@@ -246,6 +246,7 @@ def load_geometry(
             "view": {"eye": view[0:3].tolist(), "target": view[3:6].tolist(), "up": view[6:9].tolist(),
                      "fov_deg": float(view[9]), "height": int(view[10]), "width": int(view[11])},
             "supersample": int(gather[0]), "samples": int(gather[1]), "stride": int(gather[2]),
+            "edge_supersample": int(gather[3]) if gather.size > 3 else None,  # absent: uniform (before 0.2.0)
             "sun": torch.from_numpy(np.asarray(z["sun"])).to(torch.float64),
             "sky": bool(amb[0]), "ambient_weight": float(amb[1]),
         }
