@@ -230,11 +230,13 @@ def render_test_set(out: str | Path, count: int = 200, size: int = 32, spp: int 
     out.mkdir(parents=True, exist_ok=True)
     cfg_path = out / CONFIG_FILE
     stored = json.loads(cfg_path.read_text()) if cfg_path.is_file() else {}
-    if stored and GeneratorConfig.from_json(stored["generator"]).size != (size, size):
-        have = GeneratorConfig.from_json(stored["generator"]).size
-        raise ValueError(f"{out} holds {have[0]}x{have[1]} images but size={size} was asked; use another folder")
     done = stored.get("indices", [])
     config = testset_config(max(done, default=-1) + 1, size)
+    if stored and not GeneratorConfig.from_json(stored["generator"]).same_samples(config):
+        have = GeneratorConfig.from_json(stored["generator"])
+        raise ValueError(f"{out} holds samples of another generator configuration ({have.size[0]}x{have.size[1]}, "
+                         f"edge rays {have.edge_supersample}) than size={size} asks with this version (edge rays "
+                         f"{config.edge_supersample}); use another folder")
     library = spectral.illuminant_library(load_resources(config)["wl"])
     index = max(done, default=-1) + 1
     bar = tqdm(total=count, initial=min(len(done), count), disable=not progress, desc="path-traced test set")

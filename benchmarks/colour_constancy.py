@@ -28,8 +28,8 @@ Usage::
     .venv/bin/python -m benchmarks.colour_constancy --study        # default: see README for its size and time
     .venv/bin/python -m benchmarks.colour_constancy --study --count 20000 --size 64 --epochs 100 --physics-epochs 30
 
-Writes ``benchmarks/results/colour_constancy_floors.md`` / ``colour_constancy_study_{count}_{size}[_pt{N}].md`` and
-``.json``.
+Writes ``colour_constancy_floors.md`` / ``colour_constancy_study_{count}_{size}[_pt{N}].md`` and ``.json`` into
+``--out`` (default ``benchmarks/results``).
 """
 
 from __future__ import annotations
@@ -267,16 +267,19 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--pathtraced", type=int, default=200, metavar="N",
                    help="also score on N Mitsuba path-traced images with geometry (benchmarks.cc_pathtraced; "
                         "0: not; skipped when Mitsuba is missing)")
+    p.add_argument("--out", default=str(RESULTS), help="folder of the result files (default: benchmarks/results; "
+                   "a smoke run's results belong elsewhere)")
     args = p.parse_args(argv)
     torch.set_num_threads(1)
-    RESULTS.mkdir(exist_ok=True)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
     if args.study and args.pathtraced and not mitsuba_available("llvm_ad_spectral"):
         print("Mitsuba 3 (llvm_ad_spectral) is not available (`make bench-install`): no path-traced test set")
         args.pathtraced = 0
     if args.floors:
-        print(floors(RESULTS))
+        print(floors(out))
     if args.study:
-        print(study(args, RESULTS))
+        print(study(args, out))
     return 0
 
 
