@@ -189,6 +189,11 @@ def test_errors_and_cache() -> None:
         gather_operator(scene, (0, 0, 1))
     full = gather_operator(scene, v, "uniform")
     assert full is op and op.gather is not None  # the cached flat operator got its kernel
+    sun = [0.3, 0.2, -1.0]  # a flat operator of a sun keeps its rays' shadow flags for the kernel built later
+    flat_sun = gather_operator(scene, v, sun, shading="flat")
+    fresh = gather_operator(scene, v, sun, cache=False)
+    assert gather_operator(scene, v, sun) is flat_sun and torch.equal(flat_sun.ray_free, fresh.ray_free)
+    assert torch.equal(flat_sun.direct, fresh.direct)
     with pytest.raises(ValueError, match="spd"):
         gathered_radiance(op, r, r)
     with pytest.raises(ValueError, match="material name"):
@@ -270,6 +275,8 @@ def test_view_rays_of_some_pixels_are_those_of_the_grid() -> None:
         assert all(len(b.unique()) == 16 for b in box.reshape(3, 16)), (nx, ny)
     with pytest.raises(ValueError, match="pattern must be one of"):
         v.rays(2, pattern="halton")
+    with pytest.raises(TypeError, match=r"pixels must be integer flat indices; got dtype torch\.float32"):
+        v.rays(2, torch.tensor([1.0]))
 
 
 def test_edge_pixels_cross_pixel_borders() -> None:
@@ -316,3 +323,36 @@ def test_edge_rays_leave_smooth_images_alone() -> None:
         assert torch.equal(op.coverage.to_dense(), plain.coverage.to_dense())
     with pytest.raises(ValueError, match="edge_supersample must be None or an integer >= 1; got 0"):
         gather_operator(scene, view, "uniform", edge_supersample=0)
+
+
+def test_float32_planes_split_in_facets_have_no_edges() -> None:
+    """A tilted plane cut into 32 × 32 quads, in float32: its facets' normals and offsets differ by float32 noise,
+    which must not read as edges (planes are told apart at the scene's own dtype's noise)."""
+    quad = torch.tensor([[[0.0, 0.0, 0.0], [1.0, 0.0, 0.3], [1.0, 1.0, 0.5], [0.0, 1.0, 0.2]]]) + torch.tensor(
+        [3.0, 2.0, 1.0])
+    quad[0, :, 2] = 1.0 + 0.3 * (quad[0, :, 0] - 3.0) + 0.2 * (quad[0, :, 1] - 2.0)  # planar
+    for dtype in DTYPES:
+        scene = ti.Scene.from_polygons(quad.to(dtype)).subdivide(32)[0]
+        view = View((3.5, 1.5, 3.0), (3.5, 2.5, 1.25), up=(0, 1, 0), fov_deg=20.0, height=24, width=24)
+        op = gather_operator(scene, view, "uniform", supersample=2, edge_supersample=8, shading="flat", cache=False)
+        assert op.background.max() == 0  # the plane fills the view
+        assert op.info["edge_pixels"] == 0, dtype
+
+
+def test_coarse_points_weight_rays_by_their_share_of_the_pixel() -> None:
+    """With edge rays and ``stride=2`` a block's gather point is the area-weighted mean of its hit points (each ray
+    weighted by its share of its pixel), not the plain mean, which leans toward the pixels with more rays."""
+    from torch_interreflect.camera.fragments import coarse_points, group_means, primary_fragments
+    from torch_interreflect.geometry.raycast import RayCaster
+
+    assert torch.equal(group_means(torch.tensor([[1.0], [3.0], [5.0]]), torch.tensor([0, 0, 2]), 3,
+                                   torch.tensor([1.0, 3.0, 1.0])), torch.tensor([[2.5], [0.0], [5.0]]))
+    scene, view, sun = _sunlit_blocker()
+    frag = primary_fragments(scene, view, 2, RayCaster(scene), edge_supersample=8, sun=torch.tensor(sun))
+    centres, _, _, ray_point = coarse_points(frag, view.height, view.width, scene.num_facets, 2)
+    w = frag["ray_weight"]
+    want = torch.zeros_like(centres).index_add_(0, ray_point, w[:, None] * frag["ray_point"])
+    want = want / torch.zeros(centres.shape[0], dtype=w.dtype).index_add_(0, ray_point, w)[:, None]
+    plain = group_means(frag["ray_point"], ray_point, centres.shape[0])
+    assert torch.allclose(centres, want, rtol=0, atol=1e-12)
+    assert float((plain - want).norm(dim=1).max()) > 1e-3  # blocks mixing 4- and 64-ray pixels exist

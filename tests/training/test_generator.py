@@ -240,8 +240,8 @@ def test_gathered_samples_agree_with_flat_ones_on_average(index: int) -> None:
     """Gather and flat shading light the same facets. On scenes whose facets the camera sees whole (grooves, box
     corners, W folds) image means (exposure removed) agree to within 0.3 % (measured on these six samples, the
     flat coverage from 16 × 16 rays per pixel: 0.9982–1.0013, the same from 32 × 32; from 2 × 2 rays, against the
-    gather's edge rays, 0.984 on one), for every variant. (On meshes and boxes with blocks the visible parts of a facet need not
-    have its mean irradiance: up to 4 % apart at 64 × 64.)"""
+    gather's edge rays, 0.984 on one), for every variant. (On meshes and boxes with blocks the visible parts of a
+    facet need not have its mean irradiance: up to 4 % apart at 64 × 64.)"""
     cfg = g.GeneratorConfig(count=6, seed=7, scenes=("v_groove", "box_corner", "w_shape"), size=(32, 32))
     gathered = g.render_sample(cfg, index)
     # flat coverage with uniform 16 × 16 rays: the pixel integral that the gather's edge pixels resolve
@@ -302,9 +302,10 @@ def test_split_contacts_splits_the_floor_under_the_blocks() -> None:
 
 
 def test_gathered_samples_carry_their_per_pixel_model_and_refine_uses_it():
-    """A gathered sample's geometry stores the facets, view and light mix; refine_illuminant rebuilds the gather
-    from them, so at the true illuminant its re-render explains the image to 0.12 % (measured) where the flat
-    model leaves 12 % (a concave mesh, only parts of its facets seen)."""
+    """A gathered sample's geometry stores the facets, view, light mix and rays; refine_illuminant rebuilds the
+    gather from them, so at the true illuminant its re-render explains the image to 0.17 % (measured) where the
+    flat model leaves 12 % (a concave mesh, only parts of its facets seen), and the sample's model with uniform
+    2 × 2 rays (``edge_supersample=1``) 5.5 %."""
     from torch_interreflect.training import refine_illuminant
 
     cfg = g.GeneratorConfig(size=(32, 32))
@@ -319,3 +320,6 @@ def test_gathered_samples_carry_their_per_pixel_model_and_refine_uses_it():
     gathered = refine_illuminant(est, image, geo, truth, steps=3)
     flat = refine_illuminant(est, image, {k: v for k, v in geo.items() if k != "shading"}, truth, steps=3)
     assert gathered.start_residual < 3e-3 < 0.05 < flat.start_residual
+    assert geo["shading"]["edge_supersample"] == 8
+    uniform = refine_illuminant(est, image, geo, truth, steps=3, edge_supersample=1)
+    assert uniform.start_residual > 0.03

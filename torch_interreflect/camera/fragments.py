@@ -7,9 +7,9 @@ weights that carry values from them to the fragments (``gather_operator(stride=)
 Anti-aliasing is adaptive when asked (``edge_supersample``): every pixel gets ``s × s`` rays first; where a ray
 and one of its eight neighbours on the sub-pixel grid (across pixel borders too) see something different (another
 plane or material, the background, a back face, or the other side of a sun shadow), the pixels around get
-``e²`` rays instead, at the points of a scrambled Sobol net (:meth:`View.rays`), which place an edge across the
-pixel far better than an ``e × e`` grid. Elsewhere a pixel sees one plane in one light, and the mean of its
-``s × s`` hit points is what more rays would give.
+``e²`` rays instead, at the points of a scrambled Sobol sequence (:meth:`View.rays`; a net when ``e²`` is a
+power of two), which place an edge across the pixel far better than an ``e × e`` grid. Elsewhere a pixel sees
+one plane in one light, and the mean of its ``s × s`` hit points is what more rays would give.
 """
 
 from __future__ import annotations
@@ -23,7 +23,7 @@ from ..geometry.raycast import RayCaster
 from ..geometry.scene import Scene
 from .view import View
 
-__all__ = ["coarse_points", "edge_pixels_of", "primary_fragments", "relative_weights", "sun_free"]
+__all__ = ["coarse_points", "edge_pixels_of", "group_means", "primary_fragments", "relative_weights", "sun_free"]
 
 
 def sun_free(sc: Scene, points: Tensor, facets: Tensor, direction: Tensor, caster: RayCaster) -> Tensor:
@@ -77,7 +77,8 @@ def primary_fragments(scene: Scene, view: View, s: int, caster: RayCaster, *, ed
     Returns:
         ``pixel, facet, weight, centre [K, 3]`` per fragment; ``background [H, W]``; per front-hit ray
         ``ray_fragment, ray_point [R, 3], ray_direction [R, 3], ray_weight [R]`` (its share of its pixel) and, with
-        a sun, ``ray_free``; ``edge_pixels``, the pixels given ``edge_supersample`` rays (``[0]`` without).
+        a sun, ``ray_free``; ``edge_pixels``, the (flat indices of the) pixels given ``edge_supersample`` rays
+        (``[0]`` without).
     """
     sc = scene.to(torch.float64).to("cpu")
     h, w, F = view.height, view.width, sc.num_facets
@@ -87,13 +88,15 @@ def primary_fragments(scene: Scene, view: View, s: int, caster: RayCaster, *, ed
     rays = torch.full((h * w,), float(s * s), dtype=torch.float64)  # rays per pixel
     free = None
     if sun is not None:
+        sun = torch.as_tensor(sun, dtype=torch.float64).cpu()
         free = torch.zeros(hit.numel(), dtype=torch.float64)
         free[front] = sun_free(sc, pts[front], hit[front], sun, caster)
     edges = torch.zeros(0, dtype=torch.int64)
     e = 0 if edge_supersample is None else int(edge_supersample)
     if e > s:
         material = sc.material if sc.material is not None else torch.zeros(F, dtype=torch.int64)
-        facet_label = torch.unique(torch.stack([plane_ids(sc, plane_eps(sc)), material.long()]), dim=1,
+        # planes told apart at the float noise of the scene's own dtype (float64 copy, float32 corners)
+        facet_label = torch.unique(torch.stack([plane_ids(sc, plane_eps(scene)), material.long()]), dim=1,
                                    return_inverse=True)[1]
         label = torch.where(front, facet_label[hit.clamp_min(0)], torch.where(hit >= 0, -2, -1))
         if free is not None:
@@ -127,6 +130,22 @@ def primary_fragments(scene: Scene, view: View, s: int, caster: RayCaster, *, ed
     return out
 
 
+def group_means(values: Tensor, group: Tensor, size: int, weight: Tensor | None = None) -> Tensor:
+    """Mean of ``values [R, ...]`` per group ``[R]`` (weighted by ``weight [R]`` when given): ``[size, ...]``;
+    ``0`` for an empty group. What :func:`coarse_points` places its points with and what the image gradient
+    (:mod:`~torch_interreflect.camera.image_grad`) moves them with."""
+    shape = (-1, *([1] * (values.dim() - 1)))
+    if weight is None:
+        count = torch.bincount(group, minlength=size).to(values.dtype).clamp_min(1)
+    else:
+        weight = weight.to(values)
+        count = torch.zeros(size, dtype=values.dtype, device=values.device).index_add(0, group, weight)
+        count = torch.where(count > 0, count, torch.ones_like(count))
+        values = weight.reshape(shape) * values
+    out = torch.zeros(size, *values.shape[1:], dtype=values.dtype, device=values.device).index_add(0, group, values)
+    return out / count.reshape(shape)
+
+
 def relative_weights(ray_weight: Tensor) -> Tensor:
     """Ray weights over the smallest one ``[R]``: exactly 1 everywhere when every pixel has the same rays, so a
     weighted mean of hit points is then the plain mean, to the bit."""
@@ -153,10 +172,7 @@ def coarse_points(frag: dict[str, Tensor], height: int, width: int, num_facets: 
     ray_frag = frag["ray_fragment"]
     ray_key = ((py[ray_frag] // st) * wc + px[ray_frag] // st) * F + frag["facet"][ray_frag]
     keys, inv = torch.unique(ray_key, return_inverse=True)
-    rw = relative_weights(frag["ray_weight"])
-    total = torch.zeros(keys.numel(), dtype=torch.float64).index_add_(0, inv, rw)
-    centres = torch.zeros(keys.numel(), 3, dtype=torch.float64).index_add_(0, inv, rw[:, None] * frag["ray_point"])
-    centres = centres / total[:, None]
+    centres = group_means(frag["ray_point"], inv, keys.numel(), relative_weights(frag["ray_weight"]))
     cy, cx = (py.double() + 0.5) / st - 0.5, (px.double() + 0.5) / st - 0.5
     y0, x0 = cy.floor().long(), cx.floor().long()
     rows, cols, vals = [], [], []

@@ -132,8 +132,8 @@ class Gather(nn.Module):
             factors [Kc, F])`` (:func:`~torch_interreflect.camera.fragments.coarse_points`); else ``None``.
         view: The :class:`~torch_interreflect.camera.View`; ``supersample``, ``edge_supersample``, ``samples``: the
             settings.
-        info: ``pairs``, ``rays`` and ``seconds`` (per stage) of the build; ``edge_pixels``, the pixels given
-            ``edge_supersample`` rays.
+        info: ``pairs``, ``rays`` and ``seconds`` (per stage) of the build; ``edge_pixels``, the number of pixels
+            given ``edge_supersample`` rays.
     """
 
     def __init__(self, view: View, frag: dict[str, Tensor], num_facets: int, dtype: torch.dtype,

@@ -52,7 +52,7 @@ from ..geometry.edges import candidate_edges
 from ..geometry.raycast import RayCaster
 from ..geometry.scene import Scene
 from .edge_samples import edge_samples, shadow_samples
-from .fragments import relative_weights
+from .fragments import group_means, relative_weights
 from .gather import Gather
 from .image_terms import ImageGradient
 
@@ -70,18 +70,6 @@ def _hit_points(op: Gather, scene: Scene) -> tuple[Tensor, Tensor]:
     e = torch.tensor(op.view.eye, device=scene.device, dtype=scene.dtype)
     h = op.fragment_facet.cpu()[op.ray_fragment.cpu()].to(scene.device)
     return ray_plane_points(e, d, scene.centroids[h], scene.normals[h]), h
-
-
-def _group_mean(values: Tensor, group: Tensor, size: int, weight: Tensor | None = None) -> Tensor:
-    """Mean of ``values [R, ...]`` per group (weighted by ``weight [R]`` when given), ``[size, ...]``."""
-    if weight is None:
-        count = torch.bincount(group, minlength=size).to(values.dtype).clamp_min(1)
-    else:
-        weight = weight.to(values)
-        count = torch.zeros(size, dtype=values.dtype, device=values.device).index_add(0, group, weight)
-        values = weight.reshape(-1, *([1] * (values.dim() - 1))) * values
-    out = torch.zeros(size, *values.shape[1:], dtype=values.dtype, device=values.device).index_add(0, group, values)
-    return out / count.reshape(-1, *([1] * (values.dim() - 1)))
 
 
 def _kernel_delta(op: Gather, scene: Scene, x_ray: Tensor,
@@ -102,7 +90,7 @@ def _kernel_delta(op: Gather, scene: Scene, x_ray: Tensor,
         (rows, cols), vals = g.indices(), g.values()
     shape = tuple(g.shape)
     group, facet = group.to(scene.device), facet.to(scene.device)
-    x = _group_mean(x_ray, group, int(facet.numel()), ray_weight)
+    x = group_means(x_ray, group, int(facet.numel()), ray_weight)
     rows, cols = rows.to(scene.device), cols.to(scene.device)
     vals = vals.to(device=scene.device, dtype=scene.dtype)
     eps = plane_eps(scene)
@@ -205,7 +193,7 @@ def _direct_delta(op: Gather, scene: Scene, light: Any, h_ray: Tensor, rows: Ten
     sun = sun / sun.norm()
     cos = (-(scene.normals[h_ray] * sun).sum(-1)).clamp_min(0) * op.ray_free.to(device=scene.device,
                                                                                  dtype=scene.dtype)
-    g0 = _group_mean(cos, op.ray_fragment.to(scene.device), K)
+    g0 = group_means(cos, op.ray_fragment.to(scene.device), K)
     return g0 - g0.detach()
 
 

@@ -117,7 +117,10 @@ class View:
             vs = (torch.arange(h, dtype=torch.float64)[:, None] + off).reshape(-1)
             vv, uu = torch.meshgrid(vs, us, indexing="ij")
         else:
-            p = torch.arange(h * w) if pixels is None else torch.as_tensor(pixels, dtype=torch.int64).reshape(-1)
+            p = torch.arange(h * w) if pixels is None else torch.as_tensor(pixels)
+            if p.dtype.is_floating_point or p.dtype.is_complex or p.dtype == torch.bool:
+                raise TypeError(f"pixels must be integer flat indices; got dtype {p.dtype}")
+            p = p.to(torch.int64).reshape(-1)
             if p.numel() and (int(p.min()) < 0 or int(p.max()) >= h * w):
                 raise ValueError(f"pixels must be flat indices in [0, {h * w}); got {int(p.min())}..{int(p.max())}")
             if pattern == "sobol":

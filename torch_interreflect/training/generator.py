@@ -120,9 +120,11 @@ def _stored_config(out: Path, config: GeneratorConfig) -> GeneratorConfig | None
     if not old.same_samples(config):
         a, b = old.to_json(), config.to_json()
         diff = {k: (a.get(k), v) for k, v in b.items() if a.get(k) != v and k != "count"}
+        hint = (" (a folder of uniform rays, written before 0.2.0, grows with --edge-supersample 1)"
+                if "edge_supersample" in diff and old.edge_supersample is None else "")
         raise ValueError(
             f"{out} holds samples of another configuration (differences, existing vs requested: {diff}); "
-            "use another --out or the same options"
+            f"use another --out or the same options{hint}"
         )
     return config if config.count > old.count else None  # grow; never shrink what is listed
 
