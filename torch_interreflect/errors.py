@@ -6,6 +6,10 @@ expected and what came, so ``except ValueError`` keeps working for callers that 
 
 from __future__ import annotations
 
+import contextlib
+import warnings
+from collections.abc import Iterator
+
 __all__ = [
     "AccuracyWarning",
     "ConvergenceWarning",
@@ -18,6 +22,7 @@ __all__ = [
     "SingularSystemError",
     "SpectralDataError",
     "ValueRangeError",
+    "collect_warnings",
 ]
 
 
@@ -66,3 +71,27 @@ class GeometryWarning(UserWarning):
 class GradientWarning(UserWarning):
     """Autograd will return a gradient that leaves out a known term (e.g. the part of an image's sky hidden by the
     backs of facets, held fixed while the geometry requires grad); the message names the term."""
+
+
+@contextlib.contextmanager
+def collect_warnings(category: type[Warning]) -> Iterator[list[str]]:
+    """Collect the messages of ``category`` warnings raised in the block (every one, repeats included) into the
+    yielded list, for the caller to report once; other warnings are re-emitted as they came, on leaving the block.
+
+    Example:
+        >>> import warnings
+        >>> with collect_warnings(AccuracyWarning) as got:
+        ...     warnings.warn("bound 0.015 above tol", AccuracyWarning)
+        >>> got
+        ['bound 0.015 above tol']
+    """
+    messages: list[str] = []
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        try:
+            yield messages
+        finally:
+            messages.extend(str(w.message) for w in caught if issubclass(w.category, category))
+    for w in caught:
+        if not issubclass(w.category, category):
+            warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)

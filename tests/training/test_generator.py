@@ -323,3 +323,33 @@ def test_gathered_samples_carry_their_per_pixel_model_and_refine_uses_it():
     assert geo["shading"]["edge_supersample"] == 8
     uniform = refine_illuminant(est, image, geo, truth, steps=3, edge_supersample=1)
     assert uniform.start_residual > 0.03
+
+
+def test_solver_accuracy_warnings_come_once_per_run(tmp_path: Path) -> None:
+    """Bright rooms make the solve warn that its error bound (the form factors' closure error, amplified) is above
+    its tolerance: one warning per run names the samples, instead of one or more per sample."""
+    import warnings
+
+    from torch_interreflect.errors import AccuracyWarning
+
+    cfg = g.GeneratorConfig(count=5, seed=0, scenes=("cornell",), size=(8, 8), bounces=(None,))
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        res = g.generate(tmp_path / "d", cfg, progress=False)
+    assert res.inaccurate == [3, 4] and res.written == [0, 1, 2, 3, 4]
+    accuracy = [w for w in caught if issubclass(w.category, AccuracyWarning)]
+    assert len(accuracy) == 1
+    assert "the solves of 2 of 5 samples warned" in str(accuracy[0].message)
+    assert "closure error" in str(accuracy[0].message)
+    # refining one of them: one warning for all the fit's solves
+    from torch_interreflect.training import refine_illuminant
+
+    s = g.render_sample(cfg, 3)
+    image = torch.from_numpy(s.images[None]).permute(2, 0, 1).double()
+    truth = torch.tensor(s.metadata["illuminant"]["rgb_normalized"], dtype=torch.float64)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        refine_illuminant({"camera": cfg.camera, "wavelengths": cfg.wavelengths}, image,
+                          g.load_geometry(s.geometry), truth, steps=3)
+    accuracy = [str(w.message) for w in caught if issubclass(w.category, AccuracyWarning)]
+    assert len(accuracy) == 1 and accuracy[0].startswith("refine_illuminant: ") and "of the fit's solves" in accuracy[0]

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import warnings
 from typing import Any
 
 import torch
@@ -33,6 +34,7 @@ from .. import spectral
 from ..camera.gather import gather_operator, gathered_image, mix_direct, source_irradiance
 from ..camera.sensor import Camera
 from ..camera.view import View
+from ..errors import AccuracyWarning, collect_warnings
 from ..geometry.scene import Scene
 from ..solver.api import radiance, solve
 
@@ -212,13 +214,17 @@ def refine_illuminant(
         return code_of().detach(), count[0]
 
     a = torch.zeros(n_mat, r_comps.shape[0], dtype=torch.float64, requires_grad=True)
-    fit([a], lambda: c0, lambda: a, max(10, steps // 3))  # reflectances for the starting illuminant first
-    with torch.no_grad():
-        start = math.sqrt(float(misfit(render(c0, a)[0])))
-    code = c0.clone().requires_grad_(True)
-    _, n = fit([code, a], lambda: code, lambda: a, steps)
-    with torch.no_grad():
-        pred, spd, refl = render(code, a)
-        rgb = nnf.normalize(cam(spd[None].to(cam.sensitivities.dtype))[0].to(torch.float64), dim=-1)
-        res = math.sqrt(float(misfit(pred)))
+    with collect_warnings(AccuracyWarning) as got:  # every solve of the fit would repeat it: reported once
+        fit([a], lambda: c0, lambda: a, max(10, steps // 3))  # reflectances for the starting illuminant first
+        with torch.no_grad():
+            start = math.sqrt(float(misfit(render(c0, a)[0])))
+        code = c0.clone().requires_grad_(True)
+        _, n = fit([code, a], lambda: code, lambda: a, steps)
+        with torch.no_grad():
+            pred, spd, refl = render(code, a)
+            rgb = nnf.normalize(cam(spd[None].to(cam.sensitivities.dtype))[0].to(torch.float64), dim=-1)
+            res = math.sqrt(float(misfit(pred)))
+    if got:
+        warnings.warn(f"refine_illuminant: {len(got)} of the fit's solves warned (the last: {got[-1]})",
+                      AccuracyWarning, stacklevel=2)
     return RefinedIlluminant(rgb, spd.detach(), refl.detach(), res, start, n)
