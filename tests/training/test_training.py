@@ -147,6 +147,30 @@ def test_one_step_lowers_the_cnn_loss(data: Path) -> None:
     assert float(after.detach()) < float(before.detach())
 
 
+def test_training_reports_the_solves_accuracy_warnings_once(data: Path) -> None:
+    """A re-rendering loss whose solves warn at every batch (bright rooms): one AccuracyWarning after training,
+    counting them; other warnings pass as they come."""
+    import warnings
+
+    from torch_interreflect.errors import AccuracyWarning
+    from torch_interreflect.training.train import train_model
+
+    model = torch.nn.Linear(1, 1)
+
+    def loss_fn(m: torch.nn.Module, batch: dict) -> tuple[torch.Tensor, dict[str, float]]:
+        warnings.warn("bound 0.015 above tol", AccuracyWarning)
+        warnings.warn("a user warning", UserWarning)
+        return m(torch.ones(1)).square().sum(), {}
+
+    ds = GeneratedDataset(data, None, [0, 1, 2, 3])
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        train_model(model, ds, loss_fn, epochs=3, batch_size=2, lr=1e-3, progress=False, desc="toy")
+    accuracy = [str(w.message) for w in caught if w.category is AccuracyWarning]
+    assert accuracy == ["toy: 6 of the training's solves warned (the last: bound 0.015 above tol)"]
+    assert sum(w.category is UserWarning for w in caught) == 6
+
+
 def test_physics_informed_model_rerenders_and_one_step_lowers_the_loss(data: Path) -> None:
     torch.manual_seed(0)
     model = PhysicsInformedNet(spectral.wavelengths(), CFG.camera, width=8)

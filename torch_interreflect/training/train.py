@@ -26,6 +26,7 @@ import json
 import math
 import os
 import time
+import warnings
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -35,6 +36,7 @@ from torch import Tensor, nn
 from torch.utils.data import DataLoader, Dataset
 
 from .._deprecation import moved_attribute
+from ..errors import AccuracyWarning, collect_warnings
 from .baselines import BASELINES
 from .datasets import GeneratedDataset, collate, split_indices
 from .estimator import make_network, save_estimator
@@ -249,13 +251,16 @@ def train_model(
     flush = torch.set_flush_denormal(True)  # subnormal floats make CPU convolutions several times slower
     bar = tqdm(range(epochs), desc=desc, unit="epoch", disable=not (progress and dist.main))
     model.train()
+    warned: list[str] = []
     for epoch in bar:
         if sampler is not None:
             sampler.set_epoch(epoch)
         sums: dict[str, float] = {}
         n = 0
         for batch in loader:
-            loss, logs = loss_fn(model, batch)
+            with collect_warnings(AccuracyWarning) as got:  # a re-render's solves: one summary after training
+                loss, logs = loss_fn(model, batch)
+            warned += got
             opt.zero_grad(set_to_none=True)
             loss.backward()
             opt.step()
@@ -268,6 +273,9 @@ def train_model(
     model.eval()
     if flush:
         torch.set_flush_denormal(False)
+    if warned:
+        warnings.warn(f"{desc}: {len(warned)} of the training's solves warned (the last: {warned[-1]})",
+                      AccuracyWarning, stacklevel=2)
     return history
 
 
