@@ -158,8 +158,8 @@ def test_training_reports_the_solves_accuracy_warnings_once(data: Path) -> None:
     model = torch.nn.Linear(1, 1)
 
     def loss_fn(m: torch.nn.Module, batch: dict) -> tuple[torch.Tensor, dict[str, float]]:
-        warnings.warn("bound 0.015 above tol", AccuracyWarning)
-        warnings.warn("a user warning", UserWarning)
+        warnings.warn("bound 0.015 above tol", AccuracyWarning, stacklevel=2)
+        warnings.warn("a user warning", UserWarning, stacklevel=2)
         return m(torch.ones(1)).square().sum(), {}
 
     ds = GeneratedDataset(data, None, [0, 1, 2, 3])
