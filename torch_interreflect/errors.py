@@ -75,8 +75,9 @@ class GradientWarning(UserWarning):
 
 @contextlib.contextmanager
 def collect_warnings(category: type[Warning]) -> Iterator[list[str]]:
-    """Collect the messages of ``category`` warnings raised in the block (every one, repeats included) into the
-    yielded list, for the caller to report once; other warnings are re-emitted as they came, on leaving the block.
+    """Collect the messages of ``category`` warnings raised in the block (every one, repeats included, whatever
+    the filters say of that category, ``"error"`` too) into the yielded list, for the caller to report once. Other
+    warnings go through the filters and are shown as they come.
 
     Example:
         >>> import warnings
@@ -86,12 +87,16 @@ def collect_warnings(category: type[Warning]) -> Iterator[list[str]]:
         ['bound 0.015 above tol']
     """
     messages: list[str] = []
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
-        try:
-            yield messages
-        finally:
-            messages.extend(str(w.message) for w in caught if issubclass(w.category, category))
-    for w in caught:
-        if not issubclass(w.category, category):
-            warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
+    with warnings.catch_warnings():
+        warnings.simplefilter("always", category)
+        shown = warnings.showwarning
+
+        def show(message: Warning | str, cat: type[Warning], filename: str, lineno: int, file: object = None,
+                 line: str | None = None) -> None:
+            if issubclass(cat, category):
+                messages.append(str(message))
+            else:
+                shown(message, cat, filename, lineno, file, line)
+
+        warnings.showwarning = show
+        yield messages

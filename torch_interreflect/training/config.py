@@ -57,8 +57,10 @@ class GeneratorConfig:
             the pixel integral of a camera or of a path tracer's box filter. Against Mitsuba 3 at 2 × 2,048 spp on
             three sun + sky test scenes at 32 × 32, the per-pixel RMS difference was 3.2–6.7 % with uniform 2 × 2
             rays (the default before 0.2.0, which folders written then keep), 1.0–1.3 % with ``e = 8`` and
-            0.9–1.2 % with 16, Mitsuba's own noise being 0.9–1.0 %. On 4 generator scenes against ``e = 64``: 0.4–0.7 %
-            with 8, 0.1–0.2 % with 16. The cost at 32 × 32: ~8 % fewer samples per second with 8, ~24 % with 16.
+            0.9–1.2 % with 16, Mitsuba's own noise being 0.9–1.0 %. On 4 generator scenes at 32 × 32 against ``e = 64``,
+            relative RMS over the whole image: 0.4–0.7 % with 8, 0.1–0.2 % with 16 (per pixel, over the bright
+            ones: 1.2–1.8 % and ~0.5 %). The cost: 15 % fewer samples per second at 64 × 64 with 8
+            (``benchmarks/results/generator.md``), ~8 % at 32 × 32; ~24 % with 16 at 32 × 32.
         wavelengths: ``(start, stop, step)`` of the grid in nm.
         geometry: Also write the ``_geometry.npz`` file.
         basis_components: Components of the reflectance PCA basis random spectra are drawn from.

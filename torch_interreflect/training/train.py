@@ -251,7 +251,7 @@ def train_model(
     flush = torch.set_flush_denormal(True)  # subnormal floats make CPU convolutions several times slower
     bar = tqdm(range(epochs), desc=desc, unit="epoch", disable=not (progress and dist.main))
     model.train()
-    warned: list[str] = []
+    warned, last = 0, ""
     for epoch in bar:
         if sampler is not None:
             sampler.set_epoch(epoch)
@@ -260,7 +260,7 @@ def train_model(
         for batch in loader:
             with collect_warnings(AccuracyWarning) as got:  # a re-render's solves: one summary after training
                 loss, logs = loss_fn(model, batch)
-            warned += got
+            warned, last = warned + len(got), (got[-1] if got else last)
             opt.zero_grad(set_to_none=True)
             loss.backward()
             opt.step()
@@ -274,7 +274,7 @@ def train_model(
     if flush:
         torch.set_flush_denormal(False)
     if warned:
-        warnings.warn(f"{desc}: {len(warned)} of the training's solves warned (the last: {warned[-1]})",
+        warnings.warn(f"{desc}: {warned} of the training's solves warned (the last: {last})",
                       AccuracyWarning, stacklevel=2)
     return history
 
