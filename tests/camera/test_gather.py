@@ -342,17 +342,15 @@ def test_float32_planes_split_in_facets_have_no_edges() -> None:
 def test_coarse_points_weight_rays_by_their_share_of_the_pixel() -> None:
     """With edge rays and ``stride=2`` a block's gather point is the area-weighted mean of its hit points (each ray
     weighted by its share of its pixel), not the plain mean, which leans toward the pixels with more rays."""
-    from torch_interreflect.camera.fragments import coarse_points, group_means, primary_fragments
+    from torch_interreflect.camera.fragments import coarse_points, primary_fragments
     from torch_interreflect.geometry.raycast import RayCaster
-
-    assert torch.equal(group_means(torch.tensor([[1.0], [3.0], [5.0]]), torch.tensor([0, 0, 2]), 3,
-                                   torch.tensor([1.0, 3.0, 1.0])), torch.tensor([[2.5], [0.0], [5.0]]))
+    from torch_interreflect.geometry.scene import area_average
     scene, view, sun = _sunlit_blocker()
     frag = primary_fragments(scene, view, 2, RayCaster(scene), edge_supersample=8, sun=torch.tensor(sun))
     centres, _, _, ray_point = coarse_points(frag, view.height, view.width, scene.num_facets, 2)
     w = frag["ray_weight"]
     want = torch.zeros_like(centres).index_add_(0, ray_point, w[:, None] * frag["ray_point"])
     want = want / torch.zeros(centres.shape[0], dtype=w.dtype).index_add_(0, ray_point, w)[:, None]
-    plain = group_means(frag["ray_point"], ray_point, centres.shape[0])
+    plain = area_average(frag["ray_point"], ray_point, torch.ones_like(w), centres.shape[0])
     assert torch.allclose(centres, want, rtol=0, atol=1e-12)
     assert float((plain - want).norm(dim=1).max()) > 1e-3  # blocks mixing 4- and 64-ray pixels exist

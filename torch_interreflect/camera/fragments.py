@@ -20,10 +20,10 @@ from torch import Tensor
 
 from ..geometry._polygon import plane_eps, plane_ids, ray_plane_points
 from ..geometry.raycast import RayCaster
-from ..geometry.scene import Scene
+from ..geometry.scene import Scene, area_average
 from .view import View
 
-__all__ = ["coarse_points", "edge_pixels_of", "group_means", "primary_fragments", "relative_weights", "sun_free"]
+__all__ = ["coarse_points", "edge_pixels_of", "primary_fragments", "relative_weights", "sun_free"]
 
 
 def sun_free(sc: Scene, points: Tensor, facets: Tensor, direction: Tensor, caster: RayCaster) -> Tensor:
@@ -130,22 +130,6 @@ def primary_fragments(scene: Scene, view: View, s: int, caster: RayCaster, *, ed
     return out
 
 
-def group_means(values: Tensor, group: Tensor, size: int, weight: Tensor | None = None) -> Tensor:
-    """Mean of ``values [R, ...]`` per group ``[R]`` (weighted by ``weight [R]`` when given): ``[size, ...]``;
-    ``0`` for an empty group. What :func:`coarse_points` places its points with and what the image gradient
-    (:mod:`~torch_interreflect.camera.image_grad`) moves them with."""
-    shape = (-1, *([1] * (values.dim() - 1)))
-    if weight is None:
-        count = torch.bincount(group, minlength=size).to(values.dtype).clamp_min(1)
-    else:
-        weight = weight.to(values)
-        count = torch.zeros(size, dtype=values.dtype, device=values.device).index_add(0, group, weight)
-        count = torch.where(count > 0, count, torch.ones_like(count))
-        values = weight.reshape(shape) * values
-    out = torch.zeros(size, *values.shape[1:], dtype=values.dtype, device=values.device).index_add(0, group, values)
-    return out / count.reshape(shape)
-
-
 def relative_weights(ray_weight: Tensor) -> Tensor:
     """Ray weights over the smallest one ``[R]``: exactly 1 everywhere when every pixel has the same rays, so a
     weighted mean of hit points is then the plain mean, to the bit."""
@@ -172,7 +156,7 @@ def coarse_points(frag: dict[str, Tensor], height: int, width: int, num_facets: 
     ray_frag = frag["ray_fragment"]
     ray_key = ((py[ray_frag] // st) * wc + px[ray_frag] // st) * F + frag["facet"][ray_frag]
     keys, inv = torch.unique(ray_key, return_inverse=True)
-    centres = group_means(frag["ray_point"], inv, keys.numel(), relative_weights(frag["ray_weight"]))
+    centres = area_average(frag["ray_point"], inv, relative_weights(frag["ray_weight"]), keys.numel())
     cy, cx = (py.double() + 0.5) / st - 0.5, (px.double() + 0.5) / st - 0.5
     y0, x0 = cy.floor().long(), cx.floor().long()
     rows, cols, vals = [], [], []

@@ -50,9 +50,9 @@ from ..formfactors.visibility_grad import boundary_values, interior_values, shad
 from ..geometry._polygon import bilinear, clip_polygons, plane_eps, quad_coordinates, ray_plane_points
 from ..geometry.edges import candidate_edges
 from ..geometry.raycast import RayCaster
-from ..geometry.scene import Scene
+from ..geometry.scene import Scene, area_average
 from .edge_samples import edge_samples, shadow_samples
-from .fragments import group_means, relative_weights
+from .fragments import relative_weights
 from .gather import Gather
 from .image_terms import ImageGradient
 
@@ -76,7 +76,7 @@ def _kernel_delta(op: Gather, scene: Scene, x_ray: Tensor,
                   caster: RayCaster) -> tuple[Tensor, Tensor | None, Tensor, Tensor, Tensor]:
     """``(delta [Kp, F] sparse COO, weights | None, rows [P], cols [P], delta values [P])`` of the gather
     points."""
-    ray_weight = None  # a fragment's rays share one weight; a coarse point's are weighted as coarse_points does
+    ray_weight = torch.ones(op.ray_fragment.numel(), dtype=torch.float64)  # a fragment's rays share one weight
     if op.kernel is None:
         group, facet, weights = op.ray_fragment.cpu(), op.fragment_facet.cpu(), None
         g = op.gather.cpu()  # CSR: rows in order, columns ascending within a row
@@ -85,12 +85,12 @@ def _kernel_delta(op: Gather, scene: Scene, x_ray: Tensor,
         cols, vals = g.col_indices(), g.values()
     else:
         group, facet, weights, g = op.kernel
-        ray_weight = relative_weights(op.ray_weight.cpu()).to(scene.device)
+        ray_weight = relative_weights(op.ray_weight.cpu())  # a coarse point's, as coarse_points weights them
         g = g.coalesce()
         (rows, cols), vals = g.indices(), g.values()
     shape = tuple(g.shape)
     group, facet = group.to(scene.device), facet.to(scene.device)
-    x = group_means(x_ray, group, int(facet.numel()), ray_weight)
+    x = area_average(x_ray, group, ray_weight, int(facet.numel()))
     rows, cols = rows.to(scene.device), cols.to(scene.device)
     vals = vals.to(device=scene.device, dtype=scene.dtype)
     eps = plane_eps(scene)
@@ -193,7 +193,7 @@ def _direct_delta(op: Gather, scene: Scene, light: Any, h_ray: Tensor, rows: Ten
     sun = sun / sun.norm()
     cos = (-(scene.normals[h_ray] * sun).sum(-1)).clamp_min(0) * op.ray_free.to(device=scene.device,
                                                                                  dtype=scene.dtype)
-    g0 = group_means(cos, op.ray_fragment.to(scene.device), K)
+    g0 = area_average(cos[:, None], op.ray_fragment.to(scene.device), torch.ones_like(cos), K)[:, 0]
     return g0 - g0.detach()
 
 

@@ -101,9 +101,6 @@ def gathered_model(geometry: dict[str, Any], edge_supersample: int | None = None
     sh = geometry.get("shading")
     if sh is None:
         return None
-    if edge_supersample is not None and (isinstance(edge_supersample, bool) or int(edge_supersample) !=
-                                         edge_supersample or int(edge_supersample) < 1):
-        raise ValueError(f"edge_supersample must be None or an integer >= 1; got {edge_supersample!r}")
     scene = Scene.from_parts(sh["corners"].to(torch.float64), sh["is_triangle"], geometry["material"].long(), None)
     v = sh["view"]
     view = View(v["eye"], v["target"], v["up"], fov_deg=v["fov_deg"], height=v["height"], width=v["width"])
