@@ -36,7 +36,6 @@ import os
 import platform
 import time
 import traceback
-import warnings
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -54,6 +53,7 @@ from benchmarks._common import mitsuba as mr
 from benchmarks._common.ours import DTYPE, AccuracyWarning, direct_light, render, solve
 from benchmarks._common.report import debias, fmt_e, fmt_t, rel_errors, write_lines
 from benchmarks.speed_vs_error import rows_from_markdown, time_at_error
+from torch_interreflect.errors import collect_warnings
 
 CACHE = ROOT / "out" / "accuracy"
 WAVELENGTHS = [550.0]
@@ -200,14 +200,10 @@ def finer_solution(
 
 
 # ---------------------------------------------------------------------------------------------- one case
-#: ``render(extrapolate=...)``; ``--last-level`` turns it off (the A/B of the extrapolation, written with a suffix).
-EXTRAPOLATE = True
-
-
-def run_case(p: dict, accuracy: float, max_facets: int = 12_000) -> dict:
-    """``ti.render`` once, timed (wall time of the call); the ``AccuracyWarning`` is recorded, not raised."""
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
+def run_case(p: dict, accuracy: float, max_facets: int = 12_000, extrapolate: bool = True) -> dict:
+    """``ti.render`` once, timed (wall time of the call); the ``AccuracyWarning`` is recorded, not raised.
+    ``extrapolate=False`` (``--last-level``): the last refinement level alone, the A/B of the extrapolation."""
+    with collect_warnings(AccuracyWarning) as warned:
         t0 = time.perf_counter()
         out = render(
             p["scene"],
@@ -217,12 +213,11 @@ def run_case(p: dict, accuracy: float, max_facets: int = 12_000) -> dict:
             accuracy=accuracy,
             wavelengths=torch.tensor(WAVELENGTHS, dtype=DTYPE),
             max_facets=max_facets,
-            extrapolate=EXTRAPOLATE,
+            extrapolate=extrapolate,
             progress=False,
         )
         seconds = time.perf_counter() - t0
     rep = out.report
-    warned = [str(w.message) for w in caught if issubclass(w.category, AccuracyWarning)]
     return {
         "accuracy": accuracy,
         "irradiance": out.irradiance.detach().numpy().reshape(-1),
@@ -242,19 +237,19 @@ def run_case(p: dict, accuracy: float, max_facets: int = 12_000) -> dict:
     }
 
 
-def _child(conn: Any, p: dict, accuracy: float, max_facets: int) -> None:
+def _child(conn: Any, p: dict, accuracy: float, max_facets: int, extrapolate: bool) -> None:
     try:
-        conn.send(run_case(p, accuracy, max_facets))
+        conn.send(run_case(p, accuracy, max_facets, extrapolate))
     except BaseException:  # report anything to the parent rather than dying silently
         conn.send({"error": traceback.format_exc()})
     conn.close()
 
 
-def run_case_limited(p: dict, accuracy: float, max_facets: int, limit_s: float) -> dict:
+def run_case_limited(p: dict, accuracy: float, max_facets: int, limit_s: float, extrapolate: bool = True) -> dict:
     """:func:`run_case` in a forked child, killed after ``limit_s`` seconds (``{"skipped": ...}``)."""
     ctx = mp.get_context("fork")
     a, b = ctx.Pipe(duplex=False)
-    proc = ctx.Process(target=_child, args=(b, p, accuracy, max_facets))
+    proc = ctx.Process(target=_child, args=(b, p, accuracy, max_facets, extrapolate))
     proc.start()
     b.close()
     res: dict | None = None
@@ -587,7 +582,7 @@ def run_group(names: Sequence[str], accs: Sequence[float], a: argparse.Namespace
         ref, p, finer = refs[n], ps[n], finers[n]
         cases = []
         for acc in accs:
-            c = run_case_limited(p, acc, a.max_facets, a.limit)
+            c = run_case_limited(p, acc, a.max_facets, a.limit, not a.last_level)
             if "irradiance" in c:
                 c["m"] = measure(c, ref, finer)
                 log(
@@ -740,8 +735,6 @@ def main(argv: Sequence[str] | None = None) -> None:
     names = a.scenes or (QUICK_SCENES if a.quick else FULL_SCENES)
     accs = a.accuracies or (QUICK_ACC if a.quick else FULL_ACC)
     suffix = ("_quick" if a.quick else "") + ("_last_level" if a.last_level else "")
-    global EXTRAPOLATE
-    EXTRAPOLATE = not a.last_level
     t_start = time.perf_counter()
     if a.from_json:
         saved = json.loads((CACHE / f"results{suffix}.json").read_text())
