@@ -354,3 +354,42 @@ def test_coarse_points_weight_rays_by_their_share_of_the_pixel() -> None:
     plain = area_average(frag["ray_point"], ray_point, torch.ones_like(w), centres.shape[0])
     assert torch.allclose(centres, want, rtol=0, atol=1e-12)
     assert float((plain - want).norm(dim=1).max()) > 1e-3  # blocks mixing 4- and 64-ray pixels exist
+
+
+def test_repeated_renders_reuse_the_transposed_operator() -> None:
+    """The backward of a gathered image uses transposes built once per operator, dtype and device: the same
+    gradients as plain sparse products, twice differentiable, and rebuilt after ``.to()``."""
+    from torch_interreflect._sparse import constant_product
+
+    scene = ti.scenes.box_corner(1.0, divisions=2, dtype=torch.float64)
+    v = View((1.5, 1.2, 1.0), (0.2, 0.3, 0.1), height=6, width=7, fov_deg=60)
+    op = gather_operator(scene, v, "sky", cache=False)
+    gen = torch.Generator().manual_seed(0)
+    r = (0.2 + 0.6 * torch.rand(scene.num_facets, 2, dtype=torch.float64, generator=gen)).requires_grad_()
+    E = (1.0 + torch.rand(scene.num_facets, 2, dtype=torch.float64, generator=gen)).requires_grad_()
+    S = torch.tensor([1.0, 1.5], dtype=torch.float64)
+    w = torch.rand(2, 6, 7, dtype=torch.float64, generator=gen)
+    grads = torch.autograd.grad((gathered_radiance(op, r, E, S) * w).sum(), (r, E))
+    cached = dict(op._operands)
+    assert {k[0] for k in cached} == {"gather", "pixel_fragments"}
+    again = torch.autograd.grad((gathered_radiance(op, r, E, S) * w).sum(), (r, E))
+    assert all(op._operands[k][2] is cached[k][2] for k in cached)  # built once
+    with torch.no_grad():  # the same image through plain sparse products
+        plain = gathered_radiance(op, r, E, S)
+    assert torch.equal(plain, gathered_radiance(op, r, E, S).detach())
+    for a, b in zip(grads, again, strict=True):
+        assert torch.equal(a, b)
+    m = op.gather
+    x = torch.rand(m.shape[1], 3, dtype=torch.float64, generator=gen, requires_grad=True)
+    g_plain = torch.autograd.grad((m @ x * x.new_ones(1)).pow(2).sum(), x)[0]
+    g_ours = torch.autograd.grad(constant_product(m, cached[("gather", torch.float64, x.device)][2], x).pow(2).sum(),
+                                 x)[0]
+    assert torch.allclose(g_ours, g_plain, rtol=1e-14, atol=0)
+    assert torch.autograd.gradgradcheck(lambda y: constant_product(m, cached[("gather", torch.float64, x.device)][2],
+                                                                   y).pow(2), (x,))
+    op32 = op.to(torch.float32)  # new buffers: converted again, in the new dtype
+    r32, E32 = r.detach().float().requires_grad_(), E.detach().float().requires_grad_()
+    g32 = torch.autograd.grad((gathered_radiance(op32, r32, E32, S.float()) * w.float()).sum(), (r32, E32))
+    assert {k[1] for k in op32._operands} == {torch.float32}  # the float64 entries of the old buffers are gone
+    for a, b in zip(g32, grads, strict=True):
+        assert torch.allclose(a.double(), b, rtol=1e-5, atol=1e-6)

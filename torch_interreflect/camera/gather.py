@@ -27,7 +27,7 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
-from .._sparse import sparse_matrix
+from .._sparse import constant_product, sparse_matrix, to_csr
 from ..errors import ShapeError
 from ..geometry.raycast import RayCaster
 from ..geometry.scene import Scene
@@ -161,6 +161,8 @@ class Gather(nn.Module):
         self.register_buffer("direct", None, persistent=False)
         self.register_buffer("open_sky", None, persistent=False)
         self.info: dict[str, Any] = {"edge_pixels": int(frag["edge_pixels"].numel())}
+        # per (buffer, dtype, device): the buffer, it in that dtype and device, and its CSR transpose (_operand)
+        self._operands: dict[tuple[str, torch.dtype, torch.device], tuple[Tensor, Tensor, Tensor]] = {}
 
     @property
     def num_fragments(self) -> int:
@@ -306,6 +308,26 @@ def _columns(m: Tensor, x: Tensor) -> Tensor:
     return out.reshape(m.shape[0], *lead, c).movedim(0, -2)
 
 
+def _apply(op: Gather, name: str, x: Tensor) -> Tensor:
+    """``_columns`` of the operator's sparse buffer ``name``. When ``x`` takes a gradient, the buffer in ``x``'s
+    dtype and device and its CSR transpose are kept on the operator (for the backward's ``mᵀ g``), so that a fit
+    that renders the same view many times (:func:`~torch_interreflect.training.refine_illuminant`) builds them
+    once."""
+    m = getattr(op, name)
+    if not (torch.is_grad_enabled() and x.requires_grad) or m.layout != torch.sparse_csr or m.requires_grad:
+        return _columns(m, x)
+    key = (name, x.dtype, x.device)
+    hit = op._operands.get(key)
+    if hit is None or hit[0] is not m:  # a buffer replaced (.to(), a new kernel) is converted again
+        for stale in [k for k, h in op._operands.items() if getattr(op, k[0]) is not h[0]]:
+            del op._operands[stale]
+        moved = m.to(device=x.device, dtype=x.dtype)
+        hit = op._operands[key] = (m, moved, to_csr(moved.t()))
+    lead, n, c = x.shape[:-2], x.shape[-2], x.shape[-1]
+    out = constant_product(hit[1], hit[2], x.movedim(-2, 0).reshape(n, -1))
+    return out.reshape(m.shape[0], *lead, c).movedim(0, -2)
+
+
 def _to_image(op: Gather, pixels: Tensor) -> Tensor:
     """``[..., H·W, C]`` → ``[..., C, H, W]``."""
     return pixels.movedim(-1, -2).reshape(*pixels.shape[:-2], pixels.shape[-1], op.height, op.width)
@@ -353,7 +375,7 @@ def gathered_radiance(op: Gather, reflectance: Tensor, irradiance: Tensor, spd: 
         raise ValueError(f"shading must be 'gather' or 'flat'; got {shading!r}")
     r, E = _check_spectra(op, reflectance, irradiance)
     if shading == "flat":
-        flat = _columns(op.coverage, r * E / math.pi)
+        flat = _apply(op, "coverage", r * E / math.pi)
         if gradient is not None:
             flat = flat + edge_pixels(gradient, None, r * E / math.pi, op.height * op.width)
         return _to_image(op, flat)
@@ -371,14 +393,14 @@ def gathered_radiance(op: Gather, reflectance: Tensor, irradiance: Tensor, spd: 
     direct = (op.direct if own_direct else direct).to(device=E.device, dtype=E.dtype)
     if own_direct and gradient is not None and gradient.direct is not None:
         direct = direct + gradient.direct.to(direct)
-    e_frag = direct[:, None] * S[..., None, :] + _columns(op.gather, r * E)  # [..., K, L]
+    e_frag = direct[:, None] * S[..., None, :] + _apply(op, "gather", r * E)  # [..., K, L]
     if gradient is not None and gradient.gather is not None:
         moved = _columns(gradient.gather, r * E)
         e_frag = e_frag + (moved if gradient.weights is None else _columns(gradient.weights, moved))
     r_frag = r.index_select(-2, op.fragment_facet.to(E.device))
     r_frag, e_frag = torch.broadcast_tensors(r_frag, e_frag)
     values = r_frag * e_frag / math.pi
-    pixels = _columns(op.pixel_fragments, values)
+    pixels = _apply(op, "pixel_fragments", values)
     if gradient is not None:
         pixels = pixels + edge_pixels(gradient, values, r * E / math.pi, op.height * op.width)
         if gradient.shadow_pixel.numel() and own_direct:

@@ -129,7 +129,7 @@ def refine_illuminant(
     prior_weight: float = 1e-6,
     reflectance_components: int = 30,
     steps: int = 150,
-    tol: float = 1e-6,
+    tol: float = 1e-4,
     edge_supersample: int | None = None,
 ) -> RefinedIlluminant:
     """Refine ``init_rgb`` by re-rendering ``image`` through the interreflection model (module docstring).
@@ -146,7 +146,9 @@ def refine_illuminant(
             the true illuminant, the refinement's median error on the study's path-traced images was 3.76° with 6,
             2.45° with 12 and 2.28° with 20 (40 images); from the network, 3.77° / 3.22° / 2.79° / 2.40° (30).
         steps: L-BFGS iterations.
-        tol: Relative residual of the solves.
+        tol: Relative error of the solves (forward and adjoint). ``1e-4`` is far below what an image's noise and the
+            model's mismatch leave (residuals of 1–7 %): from the true illuminant on 40 of the study's path-traced
+            images, the median error was 2.34° with ``1e-4`` and 2.34° with ``1e-6``, in 0.69× the time.
         edge_supersample: For a gathered sample: ``e`` for ``e²`` rays in the edge pixels of the model's image
             (:func:`gathered_model`; ``None``: the sample's own). The model should resolve the image's pixel
             integral. Started from the true illuminant on 20 of the study's path-traced images (Mitsuba, 256 spp)
