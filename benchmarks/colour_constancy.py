@@ -8,8 +8,8 @@
 ``--workers`` shards at once; the held-out split is the last 20 % of the scenes, of which the first ``--max-test``
 are scored), then per test image and seed the angular errors of every method:
 
-- without geometry: Grey-World, White-Patch, Grey-Edge, the FC4-style CNN trained on direct-only and on ∞-bounce
-  images, the physics-informed network;
+- without geometry: Grey-World, White-Patch, Grey-Edge, the FC4-style CNN trained on direct-only, two-bounce and
+  ∞-bounce images, the physics-informed network;
 - with geometry: the refinement by re-rendering (:func:`torch_interreflect.training.refine_illuminant`, infinite
   bounces) started from the physics-informed network and from the ∞-bounce FC4; for the first seed also two-bounce
   and direct-only re-rendering (ablations) and the refinement started from the true illuminant (what the model
@@ -45,7 +45,7 @@ import numpy as np
 import torch
 
 from benchmarks._common.mitsuba import available as mitsuba_available
-from benchmarks.cc_pathtraced import render_test_set
+from benchmarks.cc_pathtraced import SPP, render_test_set
 from torch_interreflect import spectral
 from torch_interreflect.training import (
     BASELINES,
@@ -136,7 +136,7 @@ def _score(test: GeneratedDataset, out_dir: Path, seed: int, errors: dict[str, l
         for name, fn in BASELINES.items():
             e = [float(angular_error(fn(it["image"][None], it["mask"][None])[0], it["illuminant"])) for it in test]
             errors[name] = [np.array(e)]
-    labels = {"fc4_direct": "FC4, direct-only data", "fc4_inf": "FC4, ∞-bounce data",
+    labels = {"fc4_direct": "FC4, direct-only data", "fc4_b2": "FC4, 2-bounce data", "fc4_inf": "FC4, ∞-bounce data",
               "physics": "physics-informed (network)"}
     starts = {}
     for key, label in labels.items():
@@ -178,8 +178,8 @@ def study(args: argparse.Namespace, out: Path) -> str:
     pool = None if ex is None else (ex, args.workers)
     if args.pathtraced:
         t = time.perf_counter()
-        root = render_test_set(Path(args.data).parent / f"cc-pathtraced-{args.size}", args.pathtraced, args.size,
-                               progress=False)
+        root = render_test_set(Path(args.data).parent / f"cc-pathtraced-{args.size}-{SPP}spp", args.pathtraced,
+                               args.size, progress=False)
         first = json.loads((root / "dataset.json").read_text())["indices"][: args.pathtraced]  # a folder may hold more
         sets["path-traced (Mitsuba)"] = GeneratedDataset(root, None, first, geometry=True)
         seconds["path-traced set"] = time.perf_counter() - t
@@ -220,6 +220,7 @@ def _tables(errors: dict[str, list[np.ndarray]]) -> str:
     pooled = {m: np.mean(np.stack(v), 0) for m, v in errors.items()}
     pairs = [("physics-informed (network)", "FC4, ∞-bounce data"),
              ("FC4, ∞-bounce data", "FC4, direct-only data"),
+             ("FC4, ∞-bounce data", "FC4, 2-bounce data"),
              ("physics + geometry refinement, ∞ bounces", "physics-informed (network)"),
              ("physics + geometry refinement, ∞ bounces", "FC4, ∞-bounce data"),
              ("FC4 ∞ + geometry refinement, ∞ bounces", "FC4, ∞-bounce data")]

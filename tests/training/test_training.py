@@ -195,7 +195,7 @@ def test_train_cc_recipe_end_to_end(data: Path, tmp_path: Path) -> None:
     res = run_train_cc(cfg)
     rows = res["summaries"]
     baselines, learned = list(rows)[:3], list(rows)[3:]
-    assert baselines == ["Grey-World", "White-Patch", "Grey-Edge"] and len(learned) == 3
+    assert baselines == ["Grey-World", "White-Patch", "Grey-Edge"] and len(learned) == 4
     for name, s in rows.items():
         values = [s[k] for k in ("mean", "median", "trimean", "best25", "worst25", "max")]
         assert all(math.isfinite(v) and 0.0 <= v <= 180.0 for v in values), name
@@ -205,8 +205,8 @@ def test_train_cc_recipe_end_to_end(data: Path, tmp_path: Path) -> None:
     best_baseline = min(rows[k]["mean"] for k in baselines)
     assert worst_learned < 0.7 * best_baseline, rows
     table = (tmp_path / "results.md").read_text()
-    assert table.count("\n|") >= 7 and f"{rows['Grey-World']['mean']:.2f}" in table
-    assert {p.name for p in tmp_path.glob("*.pt")} == {"fc4_direct.pt", "fc4_inf.pt", "physics.pt"}
+    assert table.count("\n|") >= 8 and f"{rows['Grey-World']['mean']:.2f}" in table
+    assert {p.name for p in tmp_path.glob("*.pt")} == {"fc4_direct.pt", "fc4_b2.pt", "fc4_inf.pt", "physics.pt"}
     # a second run into the same folder is refused before it trains, unless asked to overwrite
     before = (tmp_path / "fc4_inf.pt").read_bytes()
     with pytest.raises(FileExistsError, match="--overwrite"):

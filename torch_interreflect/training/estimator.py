@@ -41,7 +41,7 @@ __all__ = [
 CHECKPOINT_FORMAT = "torch_interreflect.illuminant_estimator"
 FORMAT_VERSION = 1
 #: File names :func:`load_estimator` tries, in order, when given a folder (``interreflect train-cc``'s output).
-PREFERRED_FILES = ("physics.pt", "fc4_inf.pt", "fc4_direct.pt", "model.pt")
+PREFERRED_FILES = ("physics.pt", "fc4_inf.pt", "fc4_b2.pt", "fc4_direct.pt", "model.pt")
 
 
 class CheckpointError(ValueError):

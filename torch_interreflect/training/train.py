@@ -54,7 +54,7 @@ def __getattr__(name: str) -> object:
 
 
 #: What :func:`run_train_cc` writes to its ``out`` folder (refused when present, unless ``overwrite``).
-WEIGHT_FILES = ("fc4_direct.pt", "fc4_inf.pt", "physics.pt", "results.md", "results.json")
+WEIGHT_FILES = ("fc4_direct.pt", "fc4_b2.pt", "fc4_inf.pt", "physics.pt", "results.md", "results.json")
 
 
 @dataclasses.dataclass
@@ -317,6 +317,8 @@ def _runs(cfg: TrainConfig, gen: GeneratorConfig) -> list[tuple[str, str, dict[s
     if 1 in gen.bounces:
         runs.append(("FC4-style CNN, trained on direct-only", "fc4_direct", {**fc4, "trained_on": "direct-only"}, 1,
                      cfg.epochs))
+    if 2 in gen.bounces:
+        runs.append(("FC4-style CNN, trained on 2-bounce", "fc4_b2", {**fc4, "trained_on": "2-bounce"}, 2, cfg.epochs))
     runs.append(("FC4-style CNN, trained on ∞-bounce", "fc4_inf", {**fc4, "trained_on": "inf"}, None, cfg.epochs))
     if gen.geometry and cfg.physics_epochs > 0:
         phys = {"kind": "physics", **common, "illuminant_components": 12, "reflectance_components": 3,
