@@ -67,4 +67,6 @@ def constant_product(m: Tensor, mt: Tensor, x: Tensor) -> Tensor:
         - m: ``[R, N]``, mt: ``[N, R]``, x: ``[N, C]``
         - output: ``[R, C]``
     """
+    if m.requires_grad or mt.requires_grad:
+        raise ValueError("constant_product passes no gradient to m; use m @ x for a matrix that requires grad")
     return _ConstantProduct.apply(m, mt, x)

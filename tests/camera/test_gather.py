@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import math
+import pickle
 
 import pytest
 import torch
@@ -387,9 +388,16 @@ def test_repeated_renders_reuse_the_transposed_operator() -> None:
     assert torch.allclose(g_ours, g_plain, rtol=1e-14, atol=0)
     assert torch.autograd.gradgradcheck(lambda y: constant_product(m, cached[("gather", torch.float64, x.device)][2],
                                                                    y).pow(2), (x,))
-    op32 = op.to(torch.float32)  # new buffers: converted again, in the new dtype
+    x32 = x.detach().float().requires_grad_()  # a float32 input on the float64 operator: an entry of its own
+    out32 = gathered_radiance(op, r.detach().float(), E.detach().float().requires_grad_(), S.float())
+    assert out32.dtype == torch.float32 and ("gather", torch.float32, x32.device) in op._operands
+    assert pickle.loads(pickle.dumps(op))._operands == {}  # pickling leaves the kept operands out
+    op32 = op.to(torch.float32)  # new buffers: what was kept is dropped at once, and built again in the new dtype
+    assert op32._operands == {}
     r32, E32 = r.detach().float().requires_grad_(), E.detach().float().requires_grad_()
     g32 = torch.autograd.grad((gathered_radiance(op32, r32, E32, S.float()) * w.float()).sum(), (r32, E32))
-    assert {k[1] for k in op32._operands} == {torch.float32}  # the float64 entries of the old buffers are gone
+    assert {k[1] for k in op32._operands} == {torch.float32}
     for a, b in zip(g32, grads, strict=True):
         assert torch.allclose(a.double(), b, rtol=1e-5, atol=1e-6)
+    with pytest.raises(ValueError, match="no gradient to m"):
+        constant_product(m.clone().requires_grad_(), m.t(), x)

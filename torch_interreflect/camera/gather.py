@@ -161,12 +161,37 @@ class Gather(nn.Module):
         self.register_buffer("direct", None, persistent=False)
         self.register_buffer("open_sky", None, persistent=False)
         self.info: dict[str, Any] = {"edge_pixels": int(frag["edge_pixels"].numel())}
-        # per (buffer, dtype, device): the buffer, it in that dtype and device, and its CSR transpose (_operand)
         self._operands: dict[tuple[str, torch.dtype, torch.device], tuple[Tensor, Tensor, Tensor]] = {}
 
     @property
     def num_fragments(self) -> int:
         return int(self.fragment_facet.numel())
+
+    def _operand(self, name: str, like: Tensor) -> tuple[Tensor, Tensor]:
+        """The sparse buffer ``name`` in ``like``'s dtype and device, and its CSR transpose, for products that take a
+        gradient (:func:`gathered_radiance`). Built at the first such product and kept: a fit that renders one view
+        many times (:func:`~torch_interreflect.training.refine_illuminant`) converts them once, where torch's
+        backward would convert ``mᵀ`` to CSR at every call. They hold about the buffers' memory again; ``.to()``
+        (and every other conversion of the module) drops them, and pickling leaves them out.
+        """
+        m = getattr(self, name)
+        key = (name, like.dtype, like.device)
+        hit = self._operands.get(key)
+        if hit is None or hit[0] is not m:  # the dict is replaced, never changed in place: threads may share it
+            moved = m.to(device=like.device, dtype=like.dtype)
+            hit = (m, moved, to_csr(moved.t()))
+            self._operands = {**{k: h for k, h in self._operands.items() if getattr(self, k[0]) is h[0]}, key: hit}
+        return hit[1], hit[2]
+
+    def _apply(self, fn: Any, recurse: bool = True) -> Gather:  # .to(), .cuda(), .float(), ...: new buffers
+        self._operands = {}
+        return super()._apply(fn, recurse)
+
+    def __getstate__(self) -> dict[str, Any]:
+        return {**self.__dict__, "_operands": {}}
+
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        super().__setstate__({"_operands": {}, **state})  # an operator pickled before the cache existed has none
 
     def _set_kernel(self, factors: Tensor, direct: Tensor, covered: Tensor) -> None:
         idx = factors.indices()
@@ -308,23 +333,15 @@ def _columns(m: Tensor, x: Tensor) -> Tensor:
     return out.reshape(m.shape[0], *lead, c).movedim(0, -2)
 
 
-def _apply(op: Gather, name: str, x: Tensor) -> Tensor:
-    """``_columns`` of the operator's sparse buffer ``name``. When ``x`` takes a gradient, the buffer in ``x``'s
-    dtype and device and its CSR transpose are kept on the operator (for the backward's ``mᵀ g``), so that a fit
-    that renders the same view many times (:func:`~torch_interreflect.training.refine_illuminant`) builds them
-    once."""
+def _product(op: Gather, name: str, x: Tensor) -> Tensor:
+    """``_columns`` of the operator's sparse buffer ``name``; when ``x`` takes a gradient, with the operator's kept
+    transpose (:meth:`Gather._operand`) for the backward."""
     m = getattr(op, name)
     if not (torch.is_grad_enabled() and x.requires_grad) or m.layout != torch.sparse_csr or m.requires_grad:
         return _columns(m, x)
-    key = (name, x.dtype, x.device)
-    hit = op._operands.get(key)
-    if hit is None or hit[0] is not m:  # a buffer replaced (.to(), a new kernel) is converted again
-        for stale in [k for k, h in op._operands.items() if getattr(op, k[0]) is not h[0]]:
-            del op._operands[stale]
-        moved = m.to(device=x.device, dtype=x.dtype)
-        hit = op._operands[key] = (m, moved, to_csr(moved.t()))
+    moved, transposed = op._operand(name, x)
     lead, n, c = x.shape[:-2], x.shape[-2], x.shape[-1]
-    out = constant_product(hit[1], hit[2], x.movedim(-2, 0).reshape(n, -1))
+    out = constant_product(moved, transposed, x.movedim(-2, 0).reshape(n, -1))
     return out.reshape(m.shape[0], *lead, c).movedim(0, -2)
 
 
@@ -375,7 +392,7 @@ def gathered_radiance(op: Gather, reflectance: Tensor, irradiance: Tensor, spd: 
         raise ValueError(f"shading must be 'gather' or 'flat'; got {shading!r}")
     r, E = _check_spectra(op, reflectance, irradiance)
     if shading == "flat":
-        flat = _apply(op, "coverage", r * E / math.pi)
+        flat = _product(op, "coverage", r * E / math.pi)
         if gradient is not None:
             flat = flat + edge_pixels(gradient, None, r * E / math.pi, op.height * op.width)
         return _to_image(op, flat)
@@ -393,14 +410,14 @@ def gathered_radiance(op: Gather, reflectance: Tensor, irradiance: Tensor, spd: 
     direct = (op.direct if own_direct else direct).to(device=E.device, dtype=E.dtype)
     if own_direct and gradient is not None and gradient.direct is not None:
         direct = direct + gradient.direct.to(direct)
-    e_frag = direct[:, None] * S[..., None, :] + _apply(op, "gather", r * E)  # [..., K, L]
+    e_frag = direct[:, None] * S[..., None, :] + _product(op, "gather", r * E)  # [..., K, L]
     if gradient is not None and gradient.gather is not None:
         moved = _columns(gradient.gather, r * E)
         e_frag = e_frag + (moved if gradient.weights is None else _columns(gradient.weights, moved))
     r_frag = r.index_select(-2, op.fragment_facet.to(E.device))
     r_frag, e_frag = torch.broadcast_tensors(r_frag, e_frag)
     values = r_frag * e_frag / math.pi
-    pixels = _apply(op, "pixel_fragments", values)
+    pixels = _product(op, "pixel_fragments", values)
     if gradient is not None:
         pixels = pixels + edge_pixels(gradient, values, r * E / math.pi, op.height * op.width)
         if gradient.shadow_pixel.numel() and own_direct:
