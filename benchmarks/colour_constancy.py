@@ -140,6 +140,8 @@ def _score(test: GeneratedDataset, out_dir: Path, seed: int, errors: dict[str, l
               "physics": "physics-informed (network)"}
     starts = {}
     for key, label in labels.items():
+        if not (out_dir / f"{key}.pt").is_file():  # e.g. data without direct-only or 2-bounce images
+            continue
         e, starts[key] = _net_errors(out_dir / f"{key}.pt", test)
         errors.setdefault(label, []).append(e)
     variants = [("physics", None, "physics + geometry refinement, ∞ bounces"),
