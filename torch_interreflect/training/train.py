@@ -7,8 +7,9 @@ The recipe (:func:`run_train_cc`):
 2. split the indices: the last ``--test-fraction`` are held-out scenes (every index is its own random scene);
 3. evaluate Grey-World, White-Patch and Grey-Edge on the held-out ∞-bounce images;
 4. train the FC4-style CNN (:class:`~.models.FC4Net`) on direct-only images (``_b1``), on 2-bounce images
-   (``_b2``; each when the data has them), and on ∞-bounce images; train the physics-informed model (:class:`~.models.PhysicsInformedNet`, angular + reconstruction
-   loss through the interreflection solve) on ∞-bounce images with their geometry;
+   (``_b2``; each when the data has them), and on ∞-bounce images; train the physics-informed model
+   (:class:`~.models.PhysicsInformedNet`, angular + reconstruction loss through the interreflection solve) on
+   ∞-bounce images with their geometry;
 5. test all of them on the held-out ∞-bounce images and write one table (``results.md``, ``results.json``) and the
    checkpoints (:func:`~.estimator.save_estimator`: configuration, library version and weights; load them with
    :func:`~.estimator.load_estimator`) to ``--out``.
