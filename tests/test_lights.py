@@ -175,3 +175,16 @@ def test_bad_hemisphere_point_count_raises():
     s = ti.scenes.v_groove(60.0, divisions=1, dtype=torch.float64)
     with pytest.raises(ti.errors.ValueRangeError, match="points"):
         hemisphere_fractions(s, torch.arange(2), samples=4, points=0)
+
+
+def test_sun_direction_is_one_rule_for_every_stage() -> None:
+    """lights, the gather and its image gradient read a light as a direction by the same rule."""
+    from torch_interreflect.lights import sun_direction
+
+    d = torch.tensor([0.2, 0.1, -1.0], requires_grad=True)
+    assert sun_direction(d, 8) is d  # as given: gradients kept
+    assert sun_direction([0, 0, -1], 8).tolist() == [0, 0, -1]
+    assert sun_direction([0.2, 0.1, 0.3], 3) is None  # three facets: g [F]
+    assert sun_direction(torch.tensor([True, False, True]), 8) is None  # a mask
+    assert sun_direction("sky", 8) is None and sun_direction(None, 8) is None
+    assert sun_direction(torch.ones(2, 3), 8) is None

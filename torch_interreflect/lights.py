@@ -52,7 +52,7 @@ from .geometry.raycast import RayCaster
 from .geometry.scene import Scene
 from .geometry.shadows import shadow_segments
 
-__all__ = ["back_coverage", "directional", "light_geometry", "lit_fraction", "sky", "uniform"]
+__all__ = ["back_coverage", "directional", "light_geometry", "lit_fraction", "sky", "sun_direction", "uniform"]
 
 
 def _detached_cpu(scene: Scene) -> Scene:
@@ -382,6 +382,26 @@ def uniform(scene: Scene, spd: Tensor) -> Tensor:
     return spd[..., None, :].expand(*spd.shape[:-1], scene.num_facets, spd.shape[-1])
 
 
+def sun_direction(light: object, num_facets: int) -> Tensor | None:
+    """``light`` as a direction ``[3]`` (the direction the light travels, as given: not normalised, gradients
+    kept), or ``None`` when it is another kind of light (see :func:`light_geometry`).
+
+    Three numbers are a direction, except in a scene of 3 facets, where they are the factor ``g [F]``; a boolean
+    tensor is an area-light mask.
+
+    Example:
+        >>> from torch_interreflect.lights import sun_direction
+        >>> sun_direction([0, 0, -1], 8).tolist(), sun_direction("sky", 8), sun_direction([0.2, 0.1, 0.3], 3)
+        ([0, 0, -1], None, None)
+    """
+    if light is None or isinstance(light, str):
+        return None
+    t = light if isinstance(light, Tensor) else torch.as_tensor(light)
+    if t.dtype == torch.bool or t.ndim != 1 or t.numel() != 3 or num_facets == 3:
+        return None
+    return t
+
+
 def light_geometry(
     scene: Scene | None,
     form_factors: FormFactorOperator,
@@ -449,7 +469,7 @@ def light_geometry(
             raise ShapeError(f"an area-light mask must have shape [{n}] (one flag per facet); got {list(t.shape)}")
         cols = t.to(device=device, dtype=dtype)[:, None]
         return math.pi * form_factors.matmul(cols).reshape(n)
-    if t.numel() == 3 and t.ndim == 1 and n != 3:
+    if sun_direction(t, n) is not None:
         if scene is None:
             raise ValueError("a directional light needs the scene (for normals and shadows); pass a Scene")
         e0 = directional(scene, t.to(torch.float64), torch.ones(1, dtype=torch.float64), shadows=shadows)

@@ -31,6 +31,7 @@ from .._sparse import constant_product, sparse_matrix, to_csr
 from ..errors import ShapeError
 from ..geometry.raycast import RayCaster
 from ..geometry.scene import Scene
+from ..lights import sun_direction
 from ..solver.api import solve
 from .fragments import coarse_points, primary_fragments
 from .image_terms import ImageGradient, edge_pixels, shadow_pixels
@@ -60,13 +61,11 @@ def _light_key(light: Any) -> Any:
 
 
 def _sun_of(light: Any, num_facets: int) -> Tensor | None:
-    """The light as a unit sun direction ``[3]`` float64 (CPU), or ``None`` when it is not a direction."""
-    if isinstance(light, str):
+    """The light as a unit sun direction ``[3]`` float64 (CPU, detached), or ``None`` when it is not a direction."""
+    t = sun_direction(light, num_facets)
+    if t is None:
         return None
-    t = torch.as_tensor(light).detach().cpu()
-    if t.dtype == torch.bool or t.numel() != 3 or t.ndim != 1 or num_facets == 3:
-        return None
-    t = t.to(torch.float64)
+    t = t.detach().cpu().to(torch.float64)
     return t / t.norm()
 
 

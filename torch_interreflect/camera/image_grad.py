@@ -51,6 +51,7 @@ from ..geometry._polygon import bilinear, clip_polygons, plane_eps, quad_coordin
 from ..geometry.edges import candidate_edges
 from ..geometry.raycast import RayCaster
 from ..geometry.scene import Scene, area_average
+from ..lights import sun_direction
 from .edge_samples import edge_samples, shadow_samples
 from .fragments import relative_weights
 from .gather import Gather
@@ -254,10 +255,6 @@ def image_gradient(op: Gather, scene: Scene, light: Any = "uniform", *, spacing:
 
 
 def _sun_direction(light: Any, scene: Scene) -> Tensor | None:
-    """The light as a sun direction ``[3]`` (a tensor, possibly requiring grad), or ``None``."""
-    if isinstance(light, str):
-        return None
-    t = light if isinstance(light, Tensor) else torch.as_tensor(light)
-    if t.is_floating_point() and t.ndim == 1 and t.numel() == 3 and scene.num_facets != 3:
-        return t
-    return None
+    """The light as a sun direction ``[3]`` (floating, possibly requiring grad), or ``None``."""
+    t = sun_direction(light, scene.num_facets)
+    return t if t is None or t.is_floating_point() else t.to(torch.float64)
