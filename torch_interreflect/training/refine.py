@@ -143,8 +143,9 @@ def refine_illuminant(
         bounces: ``None`` (infinite), ``1`` (direct only) or ``2``.
         prior_weight: ``λ``, the pull towards the starting code.
         reflectance_components: ``K_r`` (at most the grid's length). 30 on the 31-wavelength grid: started from
-            the true illuminant, the refinement's median error on the study's path-traced images was 3.76° with 6,
-            2.45° with 12 and 2.28° with 20 (40 images); from the network, 3.77° / 3.22° / 2.79° / 2.40° (30).
+            the true illuminant, the refinement's median error on the study's path-traced images (256 spp, an
+            earlier version) was 3.76° with 6, 2.45° with 12 and 2.28° with 20 (40 images); from the network,
+            3.77° / 3.22° / 2.79° / 2.40° (30).
         steps: L-BFGS iterations.
         tol: Relative error of the solves (forward and adjoint). ``1e-4`` is far below what an image's noise and the
             model's mismatch leave (residuals of 1–7 %): from the true illuminant on 40 of the study's path-traced
