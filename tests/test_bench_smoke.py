@@ -147,10 +147,16 @@ def test_pathtraced_test_set_agrees_with_the_library(tmp_path: Path) -> None:
 def test_pathtraced_test_set_refuses_a_folder_of_another_configuration(tmp_path: Path) -> None:
     from benchmarks import cc_pathtraced as pt
 
-    (tmp_path / "dataset.json").write_text(json.dumps({"generator": pt.testset_config(3, 16).to_json(), "indices": []}))
+    (tmp_path / "dataset.json").write_text(json.dumps({"generator": pt.testset_config(3, 16).to_json(), "indices": [],
+                                                       "spp": pt.SPP}))
     with pytest.raises(ValueError, match=r"another generator configuration \(16x16, edge rays 8\) than size=32"):
         pt.render_test_set(tmp_path, 1, 32, progress=False)
     old = dataclasses.replace(pt.testset_config(3, 32), edge_supersample=None)  # a folder made before 0.2.0
-    (tmp_path / "dataset.json").write_text(json.dumps({"generator": old.to_json(), "indices": []}))
+    (tmp_path / "dataset.json").write_text(json.dumps({"generator": old.to_json(), "indices": [], "spp": pt.SPP}))
     with pytest.raises(ValueError, match=r"\(32x32, edge rays None\) than size=32 asks with this version"):
         pt.render_test_set(tmp_path, 1, 32, progress=False)
+    same = pt.testset_config(3, 32).to_json()  # the same configuration at another spp (no "spp": 256, before 0.2.0)
+    for stored in ({"spp": 256}, {}):
+        (tmp_path / "dataset.json").write_text(json.dumps({"generator": same, "indices": [], **stored}))
+        with pytest.raises(ValueError, match=r"path-traced at 256 spp, not the 2048 asked for; use another folder"):
+            pt.render_test_set(tmp_path, 1, 32, progress=False)
