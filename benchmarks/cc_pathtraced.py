@@ -28,8 +28,8 @@ times an exposure (99th percentile → 0.9); the sidecar holds the spectra actua
 the relative RMS difference between the library's final-gather image of the same spectra and Mitsuba's over the
 covered pixels (noise included).
 
-Run: ``python -m benchmarks.cc_pathtraced --count 200 --size 32`` (about 1 s an image on a 2-core CPU at
-32 × 32 and 2,048 spp, part of it the generator's render of the samples that are dropped). Writes
+Run: ``python -m benchmarks.cc_pathtraced --count 200 --size 32`` (141 s for the 200 images on a 2-core CPU at
+32 × 32 and 2,048 spp, 91 s of it Mitsuba's, the rest mostly the generator's render of every sample scanned). Writes
 ``out/cc-pathtraced-{size}-{spp}spp`` (not committed); ``benchmarks.colour_constancy --study`` renders it when
 missing and scores every method on its first ``--pathtraced`` images. Why 2,048 spp: at 256 spp Mitsuba's noise
 (about 4 % per pixel at 32 × 32) dominated what the refinement could not fit (see :data:`SPP`).
