@@ -387,7 +387,8 @@ def sun_direction(light: object, num_facets: int) -> Tensor | None:
     kept), or ``None`` when it is another kind of light (see :func:`light_geometry`).
 
     Three numbers are a direction, except in a scene of 3 facets, where they are the factor ``g [F]``; a boolean
-    tensor is an area-light mask.
+    tensor is an area-light mask. Integers come back as an integer tensor (callers convert); anything
+    ``torch.as_tensor`` cannot read raises its error.
 
     Example:
         >>> from torch_interreflect.lights import sun_direction

@@ -228,6 +228,16 @@ def test_edge_rays_approach_the_exact_pixel_integral():
     assert rays[2, 8] < rays[8, None] / 4
 
 
+def test_an_integer_sun_direction_is_a_sun_to_the_gradient_too():
+    """The gather and its image gradient read a light as a direction by one rule (lights.sun_direction): an
+    integer direction gets the shadow-edge terms of the same direction in floats (it got none before)."""
+    sc = _floor_and_blocker(torch.tensor(0.1, dtype=F64, requires_grad=True))
+    op = gather_operator(sc, TOP_VIEW, [2, 0, -1], cache=False)
+    as_int, as_float = image_gradient(op, sc, [2, 0, -1]), image_gradient(op, sc, [2.0, 0.0, -1.0])
+    assert as_int.shadow_pixel.numel() > 0 and torch.equal(as_int.shadow_pixel, as_float.shadow_pixel)
+    assert torch.equal(as_int.shadow_weight, as_float.shadow_weight) and torch.equal(as_int.direct, as_float.direct)
+
+
 @pytest.mark.parametrize("edge", [None, 12])
 def test_sun_shadow_and_silhouette_edges_match_exact_coverage(edge):
     """A blocker over a sunlit floor, direct light only: moving it moves its silhouette and its shadow in the

@@ -184,13 +184,17 @@ class Gather(nn.Module):
 
     def _apply(self, fn: Any, recurse: bool = True) -> Gather:  # .to(), .cuda(), .float(), ...: new buffers
         self._operands = {}
-        return super()._apply(fn, recurse)
+        out = super()._apply(fn, recurse)
+        self._operands = {}  # and what another thread kept of the old buffers meanwhile
+        return out
 
     def __getstate__(self) -> dict[str, Any]:
-        return {**self.__dict__, "_operands": {}}
+        state = super().__getstate__()
+        state["_operands"] = {}
+        return state
 
     def __setstate__(self, state: dict[str, Any]) -> None:
-        super().__setstate__({"_operands": {}, **state})  # an operator pickled before the cache existed has none
+        super().__setstate__({**state, "_operands": {}})  # an operator pickled before the cache existed has none
 
     def _set_kernel(self, factors: Tensor, direct: Tensor, covered: Tensor) -> None:
         idx = factors.indices()
