@@ -20,13 +20,15 @@ Two test sets: the generator's held-out scenes, and (``--pathtraced N``, default
 folds, rooms with blocks; half the illuminants and reflectances from outside the training families).
 Differences between methods are paired per image (errors averaged over the seeds first) and given with
 percentile-bootstrap 95 % intervals (10,000 resamples of the images). FFCC summaries per method and seed.
-Refinements run in ``--workers`` processes of one torch thread each.
+Refinements run in ``--workers`` processes of one torch thread each. The report also gives the median errors per scene
+kind; ``--report JSON`` rewrites a report from its ``.json`` (same tables, no training).
 
 Usage::
 
     .venv/bin/python -m benchmarks.colour_constancy --floors
     .venv/bin/python -m benchmarks.colour_constancy --study        # default: see README for its size and time
     .venv/bin/python -m benchmarks.colour_constancy --study --count 20000 --size 64 --epochs 100 --physics-epochs 30
+    python -m benchmarks.colour_constancy --report benchmarks/results/colour_constancy_study_5000_32_pt200.json
 
 Writes ``colour_constancy_floors.md`` / ``colour_constancy_study_{count}_{size}[_pt{N}].md`` and ``.json`` into
 ``--out`` (default ``benchmarks/results``).
@@ -208,7 +210,30 @@ def study(args: argparse.Namespace, out: Path) -> str:
         if ex is not None:
             ex.shutdown()
     seconds["total"] = time.perf_counter() - t_all
-    return _report(args, errors, seconds, {k: len(v) for k, v in sets.items()}, out)
+    kinds = {name: scene_kinds(test) for name, test in sets.items()}
+    return _report(args, errors, seconds, {k: len(v) for k, v in sets.items()}, out, kinds)
+
+
+def report(path: Path, out: Path) -> str:
+    """Rewrite a study's ``.md`` (and ``.json``) from its ``.json`` (e.g. after the report gained a table): the same
+    errors and seconds; the scene kinds read from the data folders when the file has none."""
+    saved = json.loads(path.read_text())
+    args = argparse.Namespace(**saved["args"])
+    errors = {n: {m: [np.array(x) for x in v] for m, v in e.items()} for n, e in saved["errors"].items()}
+    kinds = saved.get("scene_kinds") or {}
+    for name, e in errors.items():
+        if name in kinds:
+            continue
+        n = len(next(iter(e.values()))[0])
+        if name.startswith("held-out"):
+            _, test_idx = split_indices(args.count, TrainConfig().test_fraction)
+            kinds[name] = scene_kinds(GeneratedDataset(args.data, None, test_idx[:n]))
+        else:
+            root = Path(args.data).parent / f"cc-pathtraced-{args.size}-{SPP}spp"
+            first = json.loads((root / "dataset.json").read_text())["indices"][:n]
+            kinds[name] = scene_kinds(GeneratedDataset(root, None, first))
+    sizes = {name: len(kinds[name]) for name in errors}
+    return _report(args, errors, saved["seconds"], sizes, out, kinds)
 
 
 def _tables(errors: dict[str, list[np.ndarray]]) -> str:
@@ -239,17 +264,42 @@ def _tables(errors: dict[str, list[np.ndarray]]) -> str:
             "images:\n\n" + "\n".join(lines) + "\n")
 
 
+#: Methods of the per-scene-kind table (their per-image errors averaged over the seeds first).
+KIND_METHODS = ("FC4, ∞-bounce data", "physics-informed (network)", "physics + geometry refinement, ∞ bounces",
+                "FC4 ∞ + geometry refinement, ∞ bounces", "geometry refinement from the true illuminant (seed 0)")
+
+
+def scene_kinds(test: GeneratedDataset) -> list[str]:
+    """The scene kind (``"v_groove"``, ``"cornell"``, …) of every image of ``test``, from its sidecar."""
+    return [json.loads((test.root / f"{i:06d}.json").read_text())["scene"]["kind"] for i in test.indices]
+
+
+def _by_kind(errors: dict[str, list[np.ndarray]], kinds: list[str]) -> str:
+    """Median errors per scene kind (images averaged over the seeds) of :data:`KIND_METHODS`."""
+    methods = [m for m in KIND_METHODS if m in errors]
+    lines = ["| scene kind | images | " + " | ".join(methods) + " |", "|---|---:|" + "---:|" * len(methods)]
+    kind = np.array(kinds)
+    for k in sorted(set(kinds)):
+        sel = kind == k
+        meds = [float(np.median(np.mean(np.stack(errors[m]), 0)[sel])) for m in methods]
+        lines.append(f"| {k} | {int(sel.sum())} | " + " | ".join(f"{v:.2f}" for v in meds) + " |")
+    return ("\nMedian errors (°) per scene kind, each image's error averaged over the seeds first:\n\n"
+            + "\n".join(lines) + "\n")
+
+
 def _report(args: argparse.Namespace, errors: dict[str, dict[str, list[np.ndarray]]], seconds: dict[str, float],
-            sizes: dict[str, int], out: Path) -> str:
+            sizes: dict[str, int], out: Path, kinds: dict[str, list[str]] | None = None) -> str:
     header = (f"Study: {args.count} samples at {args.size}×{args.size} (seed-0 data), {args.seeds} training seeds, "
               f"epochs {args.epochs} / physics {args.physics_epochs}, width {args.width}; total "
               f"{seconds['total'] / 60:.1f} min.\n")
-    body = "".join(f"\n## Test set: {name}, {sizes[name]} images\n\n" + _tables(e) for name, e in errors.items())
+    kinds = kinds or {}
+    body = "".join(f"\n## Test set: {name}, {sizes[name]} images\n\n" + _tables(e)
+                   + (_by_kind(e, kinds[name]) if name in kinds else "") for name, e in errors.items())
     text = header + body + "\nSeconds: " + ", ".join(f"{k} {v:.0f}" for k, v in seconds.items()) + "\n"
     stem = f"colour_constancy_study_{args.count}_{args.size}" + (f"_pt{args.pathtraced}" if args.pathtraced else "")
     (out / f"{stem}.md").write_text(text)
     dump = {"errors": {n: {m: [x.tolist() for x in v] for m, v in e.items()} for n, e in errors.items()},
-            "seconds": seconds, "args": vars(args)}
+            "seconds": seconds, "args": vars(args), "scene_kinds": kinds}
     (out / f"{stem}.json").write_text(json.dumps(dump, indent=1) + "\n")
     return text
 
@@ -272,6 +322,7 @@ def main(argv: list[str] | None = None) -> int:
                         "0: not; skipped when Mitsuba is missing)")
     p.add_argument("--out", default=str(RESULTS), help="folder of the result files (default: benchmarks/results; "
                    "a smoke run's results belong elsewhere)")
+    p.add_argument("--report", metavar="JSON", help="rewrite a study's report from its .json (no training)")
     args = p.parse_args(argv)
     torch.set_num_threads(1)
     out = Path(args.out)
@@ -283,6 +334,8 @@ def main(argv: list[str] | None = None) -> int:
         print(floors(out))
     if args.study:
         print(study(args, out))
+    if args.report:
+        print(report(Path(args.report), out))
     return 0
 
 

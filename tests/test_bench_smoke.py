@@ -160,3 +160,21 @@ def test_pathtraced_test_set_refuses_a_folder_of_another_configuration(tmp_path:
         (tmp_path / "dataset.json").write_text(json.dumps({"generator": same, "indices": [], **stored}))
         with pytest.raises(ValueError, match=r"path-traced at 256 spp, not the 2048 asked for; use another folder"):
             pt.render_test_set(tmp_path, 1, 32, progress=False)
+
+
+def test_study_report_is_rewritten_from_its_json_with_medians_per_scene_kind(tmp_path: Path) -> None:
+    from benchmarks import colour_constancy as cc
+
+    fc4 = [[1.0, 2.0, 9.0, 3.0], [3.0, 4.0, 7.0, 5.0]]  # two seeds: per-image means 2, 3, 8, 4
+    truth = [[0.5, 0.5, 1.0, 0.25]]
+    saved = {"errors": {"path-traced (Mitsuba)": {"FC4, ∞-bounce data": fc4,
+                                                  "geometry refinement from the true illuminant (seed 0)": truth}},
+             "seconds": {"total": 60.0}, "scene_kinds": {"path-traced (Mitsuba)": ["a", "b", "b", "a"]},
+             "args": {"count": 10, "size": 8, "seeds": 2, "epochs": 1, "physics_epochs": 1, "width": 4,
+                      "pathtraced": 4, "data": str(tmp_path / "none")}}
+    (tmp_path / "s.json").write_text(json.dumps(saved))
+    text = cc.report(tmp_path / "s.json", tmp_path)
+    assert "| a | 2 | 3.00 | 0.38 |" in text and "| b | 2 | 5.50 | 0.75 |" in text  # medians of 2, 4 / 3, 8
+    assert "## Test set: path-traced (Mitsuba), 4 images" in text and "total 1.0 min" in text
+    again = json.loads((tmp_path / "colour_constancy_study_10_8_pt4.json").read_text())
+    assert again["errors"] == saved["errors"] and again["scene_kinds"] == saved["scene_kinds"]
