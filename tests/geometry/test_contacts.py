@@ -69,6 +69,32 @@ def test_splitting_removes_the_hidden_area_bias():
     assert float(split.abs().max()) < 0.004
 
 
+def test_segments_inside_along_and_outside_a_facet():
+    """Cyrus–Beck on a unit square (z = 0), all segments at once: through the interior, along or touching its
+    boundary, outside, partly inside, degenerate; and on a triangle (repeated fourth corner)."""
+    from torch_interreflect.geometry.contacts import _through_interior
+
+    sq = torch.tensor([[0.0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]], dtype=torch.float64)
+    tri = torch.tensor([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 1, 0]], dtype=torch.float64)
+    cases = [  # (polygon, a, b, expected)
+        (sq, [0.2, 0.5, 0], [0.8, 0.5, 0], True),  # inside
+        (sq, [-1.0, 0.5, 0], [2.0, 0.5, 0], True),  # crosses it
+        (sq, [0.0, 0.2, 0], [0.0, 0.8, 0], False),  # along an edge
+        (sq, [1.0, 0.0, 0], [2.0, 1.0, 0], False),  # touches a corner only
+        (sq, [1.5, 0.0, 0], [1.5, 1.0, 0], False),  # outside
+        (sq, [0.5, 0.5, 0], [0.5, 0.5, 0], False),  # a point
+        (sq, [0.9, 0.5, 0], [3.0, 0.5, 0], True),  # partly inside
+        (tri, [0.2, 0.2, 0], [0.3, 0.3, 0], True),
+        (tri, [0.6, 0.6, 0], [0.9, 0.9, 0], False),  # beyond the hypotenuse
+        (tri, [0.0, 1.0, 0], [1.0, 0.0, 0], False),  # along the hypotenuse
+    ]
+    poly = torch.stack([c[0] for c in cases])
+    a, b = (torch.tensor([c[k] for c in cases], dtype=torch.float64) for k in (1, 2))
+    normal = torch.tensor([[0.0, 0.0, 1.0]], dtype=torch.float64).expand(len(cases), 3)
+    got = _through_interior(poly, normal, a, b, 1e-9)
+    assert got.tolist() == [c[3] for c in cases]
+
+
 def test_not_a_scene_raises():
     with pytest.raises(TypeError, match="expects a Scene"):
         split_at_contacts(torch.zeros(2, 4, 3))

@@ -48,10 +48,12 @@ def contact_pairs(scene: Scene) -> list[tuple[int, int]]:
         elo, ehi = torch.minimum(corners, nxt), torch.maximum(corners, nxt)  # [F, 4, 3]
         plo, phi = corners[rows].min(1).values, corners[rows].max(1).values  # [b, 3]
         in_plane &= ((elo[None] <= phi[:, None, None] + eps) & (ehi[None] >= plo[:, None, None] - eps)).all(-1)
-        for bi, fj, k in torch.nonzero(in_plane).tolist():
-            i = int(rows[bi])
-            if fj != i and _through_interior(corners[i], normals[i], corners[fj, k], nxt[fj, k], eps):
-                out.append((i, fj))
+        bi, fj, k = torch.nonzero(in_plane).unbind(1)
+        i = rows[bi]
+        keep = fj != i
+        i, fj, k = i[keep], fj[keep], k[keep]
+        hit = _through_interior(corners[i], normals[i], corners[fj, k], nxt[fj, k], eps)
+        out += list(zip(i[hit].tolist(), fj[hit].tolist(), strict=True))
     return sorted(set(out))
 
 
@@ -104,28 +106,27 @@ def split_at_contacts(scene: Scene) -> tuple[Scene, Tensor]:
     return Scene.from_parts(c, torch.as_tensor(out_tri, device=scene.device), mat, scene.material_names), parent_t
 
 
-def _through_interior(poly: Tensor, normal: Tensor, a: Tensor, b: Tensor, eps: float) -> bool:
-    """Whether segment ``a → b`` (in the polygon's plane) has a part of positive length strictly inside the
-    convex polygon ``[4, 3]`` (Cyrus–Beck clipping against its edges' inward half-planes)."""
-    if float((b - a).norm()) <= eps:
-        return False
-    t0, t1 = 0.0, 1.0
-    nxt = torch.roll(poly, -1, dims=0)
-    for k in range(poly.shape[0]):
-        e = nxt[k] - poly[k]
-        if float(e.norm()) <= eps:
-            continue
-        inward = torch.linalg.cross(normal, e / e.norm())  # counter-clockwise polygon: the interior is to the left
-        fa, fb = float((a - poly[k]) @ inward) - eps, float((b - poly[k]) @ inward) - eps
-        if fa < 0 and fb < 0:
-            return False
-        if fa < 0 or fb < 0:
-            t = fa / (fa - fb)
-            if fa < 0:
-                t0 = max(t0, t)
-            else:
-                t1 = min(t1, t)
-    return (t1 - t0) * float((b - a).norm()) > eps
+def _through_interior(poly: Tensor, normal: Tensor, a: Tensor, b: Tensor, eps: float) -> Tensor:
+    """Whether each segment ``a → b`` (in its polygon's plane) has a part of positive length strictly inside the
+    convex polygon (Cyrus–Beck clipping against its edges' inward half-planes), for all segments at once.
+
+    Shape:
+        - poly: ``[N, 4, 3]`` (counter-clockwise about ``normal``), normal: ``[N, 3]``, a, b: ``[N, 3]``
+        - output: ``[N]`` bool
+    """
+    length = torch.linalg.vector_norm(b - a, dim=-1)  # [N]
+    e = torch.roll(poly, -1, dims=1) - poly  # [N, 4, 3]
+    e_len = torch.linalg.vector_norm(e, dim=-1)  # [N, 4]
+    edge = e_len > eps  # a triangle's repeated corner gives an edge of length 0: no half-plane
+    # counter-clockwise polygons: the interior is to the left of each edge
+    inward = torch.linalg.cross(normal[:, None, :].expand_as(e), e / e_len.clamp_min(1e-300)[..., None])
+    fa = ((a[:, None, :] - poly) * inward).sum(-1) - eps  # [N, 4]
+    fb = ((b[:, None, :] - poly) * inward).sum(-1) - eps
+    outside = (edge & (fa < 0) & (fb < 0)).any(-1)
+    t = fa / torch.where(fa == fb, torch.ones_like(fa), fa - fb)
+    t0 = torch.where(edge & (fa < 0) & (fb >= 0), t, torch.zeros_like(t)).amax(-1).clamp_min(0.0)
+    t1 = torch.where(edge & (fa >= 0) & (fb < 0), t, torch.ones_like(t)).amin(-1).clamp_max(1.0)
+    return (length > eps) & ~outside & ((t1 - t0) * length > eps)
 
 
 def _split(poly: np.ndarray, point: np.ndarray, normal: np.ndarray, eps: float) -> list[np.ndarray]:
