@@ -84,6 +84,8 @@ def test_segments_inside_along_and_outside_a_facet():
         (sq, [1.5, 0.0, 0], [1.5, 1.0, 0], False),  # outside
         (sq, [0.5, 0.5, 0], [0.5, 0.5, 0], False),  # a point
         (sq, [0.9, 0.5, 0], [3.0, 0.5, 0], True),  # partly inside
+        (sq, [0.5, -0.5, 0], [1.5, 0.5, 0], False),  # through the corner (1, 0) only: the clipped part has length 0
+        (sq, [0.5, -0.6, 0], [1.6, 0.5, 0], False),  # past the corner: each end outside a different edge
         (tri, [0.2, 0.2, 0], [0.3, 0.3, 0], True),
         (tri, [0.6, 0.6, 0], [0.9, 0.9, 0], False),  # beyond the hypotenuse
         (tri, [0.0, 1.0, 0], [1.0, 0.0, 0], False),  # along the hypotenuse
@@ -93,6 +95,8 @@ def test_segments_inside_along_and_outside_a_facet():
     normal = torch.tensor([[0.0, 0.0, 1.0]], dtype=torch.float64).expand(len(cases), 3)
     got = _through_interior(poly, normal, a, b, 1e-9)
     assert got.tolist() == [c[3] for c in cases]
+    none = _through_interior(poly[:0], normal[:0], a[:0], b[:0], 1e-9)
+    assert none.shape == (0,) and none.dtype == torch.bool
 
 
 def test_not_a_scene_raises():
