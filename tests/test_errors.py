@@ -38,3 +38,28 @@ def test_other_warnings_survive_an_error_in_the_block_and_an_error_filter_applie
         with pytest.raises(ConvergenceWarning), collect_warnings(AccuracyWarning) as got:
             _warn_both(1)
     assert got == ["bound 1 above tol"]
+
+
+def test_counts_are_checked_by_one_rule() -> None:
+    """``_checks.check_count``: every count (samples, rays per side, strides, k) by the same rule and message."""
+    import numpy as np
+    import torch
+
+    import torch_interreflect as ti
+    from torch_interreflect._checks import check_count
+    from torch_interreflect.errors import ValueRangeError
+
+    assert check_count(3, "n") == 3 and check_count(np.int64(2), "n") == 2 and check_count(4.0, "n") == 4
+    assert check_count(0, "n", minimum=0) == 0 and check_count(None, "n", optional=True) is None
+    for bad in (0, -1, 2.5, True, None, "3", float("nan")):
+        with pytest.raises(ValueRangeError, match=r"n must be an integer >= 1 \(rays\); got"):
+            check_count(bad, "n", note=" (rays)")
+    with pytest.raises(ValueError, match="edge_supersample must be None or an integer >= 1; got 0"):
+        check_count(0, "edge_supersample", optional=True)
+    scene = ti.scenes.v_groove(90.0, divisions=1, dtype=torch.float64)  # the callers raise it
+    with pytest.raises(ValueRangeError, match="k must be an integer >= 1"):
+        scene.subdivide(0)
+    with pytest.raises(ValueRangeError, match="shadow_samples must be an integer >= 1; got 0"):
+        ti.lights.lit_fraction(scene, torch.tensor([0.0, 0.0, -1.0]), shadow_samples=0)
+    with pytest.raises(ValueRangeError, match=r"visibility_samples must be an integer >= 1; got 1\.5"):
+        ti.form_factors(scene, visibility_samples=1.5)

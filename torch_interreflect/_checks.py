@@ -11,8 +11,31 @@ from torch import Tensor
 
 from .errors import DeviceError, ValueRangeError
 
-__all__ = ["as_float_tensor", "as_real_tensor", "check_finite", "check_nonnegative", "check_reflectance",
+__all__ = ["as_float_tensor", "as_real_tensor", "check_count", "check_finite", "check_nonnegative", "check_reflectance",
            "check_same_device", "describe_index"]
+
+
+def check_count(value: Any, name: str, *, minimum: int = 1, optional: bool = False, note: str = "") -> int | None:
+    """``value`` as an ``int >= minimum`` (a count: samples, rays per side, a stride); ``None`` passes when
+    ``optional``.
+
+    A bool, a number that is not a whole number, or one below ``minimum`` is a :class:`ValueRangeError` (a
+    ``ValueError``) naming ``name`` (and ``note``, e.g. the unit).
+
+    Example:
+        >>> check_count(4.0, "samples"), check_count(None, "edge_supersample", optional=True)
+        (4, None)
+    """
+    if optional and value is None:
+        return None
+    try:
+        ok = not isinstance(value, bool) and int(value) == value and int(value) >= minimum
+    except (TypeError, ValueError, RuntimeError):
+        ok = False
+    if not ok:
+        raise ValueRangeError(f"{name} must be {'None or ' if optional else ''}an integer >= {minimum}{note}; got "
+                              f"{value!r}")
+    return int(value)
 
 
 

@@ -41,12 +41,12 @@ from typing import Literal
 import torch
 from torch import Tensor
 
+from ._checks import check_count
 from ._deprecation import renamed_keywords
 from .errors import ShapeError, ValueRangeError
 from .formfactors.hemisphere import hemisphere_fractions
 from .formfactors.operator import FormFactorOperator
 from .formfactors.rules import gauss_legendre01
-from .formfactors.sampling import check_sample_count
 from .geometry._polygon import bilinear, facing_any, plane_eps, quad_coordinates
 from .geometry.raycast import RayCaster
 from .geometry.scene import Scene
@@ -103,8 +103,7 @@ def lit_fraction(
     """
     if shadows not in ("auto", True, False):
         raise ValueError(f"shadows must be 'auto', True or False; got {shadows!r}")
-    if int(shadow_samples) < 1:
-        raise ValueError(f"shadow_samples must be >= 1; got {shadow_samples}")
+    check_count(shadow_samples, "shadow_samples")
     d = torch.as_tensor(direction, dtype=torch.float64).detach().cpu().reshape(-1)
     if d.numel() != 3 or not bool(torch.isfinite(d).all()) or float(d.norm()) == 0.0:
         raise ValueRangeError(f"direction must be a finite nonzero 3-vector; got {d.tolist()}")
@@ -312,7 +311,7 @@ def sky(
         )
     if backfaces not in ("auto", True, False):
         raise ValueError(f"backfaces must be 'auto', True or False; got {backfaces!r}")
-    check_sample_count(sky_samples, "sky_samples")
+    check_count(sky_samples, "sky_samples")
     open_part = 1.0 - form_factors.row_sums().to(torch.float64).cpu()  # keeps the gradient of F (module docstring)
     if backfaces is not False:
         F = scene.num_facets
@@ -359,8 +358,8 @@ def back_coverage(
     Returns:
         ``b [F]`` in [0, 1], float64 on the CPU.
     """
-    check_sample_count(sky_samples, "sky_samples")
-    check_sample_count(points, "points")
+    check_count(sky_samples, "sky_samples")
+    check_count(points, "points")
     sc = _detached_cpu(scene)
     F = sc.num_facets
     b = torch.zeros(F, dtype=torch.float64)

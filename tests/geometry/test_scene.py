@@ -100,7 +100,7 @@ def test_subdivide_preserves_area_plane_and_parents(k):
 
 
 def test_subdivide_rejects_bad_k():
-    with pytest.raises(ValueError, match="integer k >= 1"):
+    with pytest.raises(ValueError, match="k must be an integer >= 1"):
         ti.scenes.box_corner(divisions=1).subdivide(0)
 
 

@@ -27,6 +27,7 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
+from .._checks import check_count
 from .._sparse import constant_product, sparse_matrix, to_csr
 from ..errors import ShapeError
 from ..geometry.raycast import RayCaster
@@ -279,13 +280,9 @@ def gather_operator(
         raise TypeError(f"view must be a torch_interreflect.camera.View; got {type(view).__name__}")
     if shading not in ("gather", "flat"):
         raise ValueError(f"shading must be 'gather' or 'flat'; got {shading!r}")
-    if isinstance(supersample, bool) or int(supersample) != supersample or int(supersample) < 1:
-        raise ValueError(f"supersample must be an integer >= 1; got {supersample!r}")
-    if isinstance(stride, bool) or int(stride) != stride or int(stride) < 1:
-        raise ValueError(f"stride must be an integer >= 1; got {stride!r}")
-    if edge_supersample is not None and (isinstance(edge_supersample, bool) or int(edge_supersample) !=
-                                         edge_supersample or int(edge_supersample) < 1):
-        raise ValueError(f"edge_supersample must be None or an integer >= 1; got {edge_supersample!r}")
+    check_count(supersample, "supersample")
+    check_count(stride, "stride")
+    check_count(edge_supersample, "edge_supersample", optional=True)
     edge = None if edge_supersample is None or int(edge_supersample) <= int(supersample) else int(edge_supersample)
     key = (*_cache_key(scene, view, light, int(supersample), int(samples), int(seed)), int(stride), edge)
     scene = scene.detach()  # ray casting and the kernel are constants of the geometry (see image_grad for its gradient)

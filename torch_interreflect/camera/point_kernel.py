@@ -13,6 +13,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
+from .._checks import check_count
 from .._sparse import sparse_matrix
 from ..errors import ShapeError
 from ..formfactors.fused_points import point_sums
@@ -120,8 +121,7 @@ def point_form_factors(
         raise ShapeError(f"points [P, 3] and facet [P] must agree; got {list(x.shape)} and {list(h.shape)}")
     if h.numel() and (int(h.min()) < 0 or int(h.max()) >= sc.num_facets):
         raise ShapeError(f"facet indices must lie in [0, {sc.num_facets}); got [{int(h.min())}, {int(h.max())}]")
-    if isinstance(samples, bool) or int(samples) < 1:
-        raise ValueError(f"samples must be an integer >= 1 (rays per side of a target facet); got {samples!r}")
+    check_count(samples, "samples", note=" (rays per side of a target facet)")
     eps = plane_eps(scene)
     front = facing_others(scene)  # [F, F]: some corner of j strictly in front of i's plane
     fi, fj = torch.nonzero(front, as_tuple=True)

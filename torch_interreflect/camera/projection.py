@@ -23,6 +23,7 @@ import torch
 from kornia.geometry.camera import PinholeCamera
 from torch import Tensor, nn
 
+from .._checks import check_count
 from .._sparse import sparse_matrix
 from ..errors import ShapeError, ValueRangeError
 from ..geometry.scene import Scene
@@ -324,8 +325,7 @@ def project(
 
     if not isinstance(scene, Scene):
         raise TypeError(f"scene must be a Scene; got {type(scene).__name__}")
-    if isinstance(supersample, bool) or int(supersample) != supersample or int(supersample) < 1:
-        raise ValueError(f"supersample must be an integer >= 1; got {supersample!r}")
+    check_count(supersample, "supersample")
     s = int(supersample)
     if isinstance(camera, PinholeCamera):
         if camera.batch_size != 1:

@@ -17,6 +17,7 @@ from dataclasses import dataclass
 import torch
 from kornia.geometry.camera import PinholeCamera
 
+from .._checks import check_count
 from ..errors import ValueRangeError
 from .projection import look_at
 
@@ -105,8 +106,7 @@ class View:
             ``(eye [3], directions [H·s·W·s, 3])`` (``[N·s², 3]`` with ``pixels``) in metres (directions point at
             depth 1 along the axis).
         """
-        if isinstance(supersample, bool) or int(supersample) != supersample or int(supersample) < 1:
-            raise ValueError(f"supersample must be an integer >= 1; got {supersample!r}")
+        check_count(supersample, "supersample")
         if pattern not in PATTERNS:
             raise ValueError(f"pattern must be one of {list(PATTERNS)}; got {pattern!r}")
         s, h, w = int(supersample), self.height, self.width

@@ -12,11 +12,12 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from .._checks import check_count
 from ..geometry._polygon import bilinear, tangent_frame
 from ..geometry.raycast import RayCaster
 from ..geometry.scene import Scene
 from .compiled import launch, loops
-from .sampling import KRONECKER_STEP, R2_STEP, check_sample_count, pair_seeds
+from .sampling import KRONECKER_STEP, R2_STEP, pair_seeds
 
 __all__ = ["hemisphere_fractions"]
 
@@ -45,8 +46,8 @@ def hemisphere_fractions(scene: Scene, idx: Tensor, *, samples: int, points: int
     Raises:
         ValueRangeError: ``samples`` or ``points`` is not an integer ≥ 1.
     """
-    check_sample_count(samples, "samples")
-    check_sample_count(points, "points")
+    check_count(samples, "samples")
+    check_count(points, "points")
     sc = scene.to(torch.float64).to("cpu")
     kern = loops("visibility")
     caster = caster if caster is not None else RayCaster(sc)

@@ -44,6 +44,7 @@ import torch
 from torch import Tensor
 from tqdm.auto import tqdm
 
+from .._checks import check_count
 from .._sparse import sparse_matrix
 from ..errors import ValueRangeError
 from ..geometry._polygon import plane_eps
@@ -173,15 +174,13 @@ def _check_arguments(scene: Scene, eta: float, leaf_size: int, occlusion: Any, q
         raise TypeError(f"hierarchical_form_factors expects a Scene; got {type(scene).__name__}")
     if not (isinstance(eta, (int, float)) and 0.0 < eta < 2.0):
         raise ValueRangeError(f"eta must lie in (0, 2) (cluster radii against distance); got {eta!r}")
-    if isinstance(leaf_size, bool) or not isinstance(leaf_size, int) or leaf_size < 1:
-        raise ValueRangeError(f"leaf_size must be an integer >= 1; got {leaf_size!r}")
+    check_count(leaf_size, "leaf_size")
     if occlusion not in ("auto", True, False):
         raise ValueError(f"occlusion must be 'auto', True or False; got {occlusion!r}")
     if not (0.0 < quadrature_tol < 1.0):
         raise ValueRangeError(f"quadrature_tol must lie in (0, 1); got {quadrature_tol}")
     for name, val in (("visibility_samples", visibility_samples), ("cluster_samples", cluster_samples)):
-        if isinstance(val, bool) or not isinstance(val, int) or val < 1:
-            raise ValueRangeError(f"{name} must be an integer >= 1; got {val!r}")
+        check_count(val, name)
     if order not in (0, 1) or isinstance(order, bool):
         raise ValueRangeError(f"order must be 0 or 1; got {order!r}")
     if isinstance(error_samples, bool) or not isinstance(error_samples, int) or error_samples < 0:

@@ -7,7 +7,7 @@ import math
 import torch
 from torch import Tensor
 
-from ..errors import ValueRangeError
+from .._checks import check_count
 from ..geometry._polygon import tangent_frame
 from ..geometry.raycast import RayCaster
 from ..geometry.scene import Scene
@@ -20,8 +20,7 @@ def monte_carlo(
     scene: Scene, samples: int, generator: torch.Generator | None
 ) -> tuple[Tensor, Tensor, Tensor, dict]:
     """The paper's estimator (§5.2): random points on each facet, cosine-distributed directions, first hit."""
-    if samples < 1:
-        raise ValueRangeError(f"samples must be >= 1; got {samples}")
+    check_count(samples, "samples")
     sc = scene.to(torch.float64).to("cpu")
     caster = RayCaster(sc)
     F = sc.num_facets

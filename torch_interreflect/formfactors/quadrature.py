@@ -25,6 +25,7 @@ import torch
 from torch import Tensor
 from tqdm.auto import tqdm
 
+from .._checks import check_count
 from .._deprecation import renamed_keywords
 from .._sparse import sparse_matrix
 from ..errors import ValueRangeError
@@ -41,7 +42,6 @@ from .montecarlo import monte_carlo
 from .operator import FormFactors
 from .pairs import SPARSE_DENSITY, PairClasses, classify_pairs, facing_pairs, order_pairs, rule_groups
 from .rules import quadrature_rule
-from .sampling import check_sample_count
 from .visibility import VISIBILITY_ANGLE, PointVisibility, blocker_candidates, check_visibility_options
 from .visibility_grad import VISIBILITY_GRAD_POINTS, visibility_gradient
 
@@ -164,7 +164,7 @@ def form_factors(
     """
     _check_arguments(scene, method, occlusion, quadrature_tol, layout, backend)
     check_visibility_options(visibility_samples, visibility_tol, visibility_angle, visibility_jitter)
-    check_sample_count(visibility_grad_points, "visibility_grad_points", minimum=0)
+    check_count(visibility_grad_points, "visibility_grad_points", minimum=0)
     t0 = time.perf_counter()
     F = scene.num_facets
     if progress is None:

@@ -1,29 +1,19 @@
 """Deterministic low-discrepancy sampling shared by the ray-cast estimates (visibility between facets, the
-hemisphere fractions of the sky): sequence steps, per-pair seeds, and the check of sample counts."""
+hemisphere fractions of the sky): sequence steps and per-pair seeds. (Sample counts are checked by
+:func:`torch_interreflect._checks.check_count`.)"""
 
 from __future__ import annotations
-
-from typing import Any
 
 import torch
 from torch import Tensor
 
-from ..errors import ValueRangeError
-
-__all__ = ["KRONECKER_STEP", "R2_STEP", "check_sample_count", "pair_seeds"]
+__all__ = ["KRONECKER_STEP", "R2_STEP", "pair_seeds"]
 
 #: The R2 sequence's step (Roberts 2018): ``1/φ₂, 1/φ₂²`` with ``φ₂`` the plastic number; consecutive points fill the
 #: unit square with low discrepancy. (The compiled loops in ``_numba_visibility`` hold the same numbers.)
 R2_STEP = (0.7548776662466927, 0.5698402909980532)
 #: Steps of a second Kronecker sequence (√2 − 1, √3 − 1), for a rotation that must not follow an R2 offset.
 KRONECKER_STEP = (0.41421356237309515, 0.7320508075688772)
-
-
-def check_sample_count(value: Any, name: str, minimum: int = 1) -> None:
-    """Raise :class:`~torch_interreflect.errors.ValueRangeError` unless ``value`` is an integer ≥ ``minimum`` (a
-    number of samples)."""
-    if isinstance(value, bool) or not isinstance(value, int) or value < minimum:
-        raise ValueRangeError(f"{name} must be an integer >= {minimum}; got {value!r}")
 
 
 def pair_seeds(dom: Tensor, tgt: Tensor) -> Tensor:

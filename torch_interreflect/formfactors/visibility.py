@@ -19,13 +19,14 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from .._checks import check_count
 from ..errors import ValueRangeError
 from ..geometry._polygon import bilinear, clip_polygons, facet_samples, plane_groups
 from ..geometry.raycast import RayCaster
 from ..geometry.scene import Scene
 from .compiled import launch, loops
 from .contour import point_polygon_factor
-from .sampling import R2_STEP, check_sample_count, pair_seeds
+from .sampling import R2_STEP, pair_seeds
 
 __all__ = ["VISIBILITY_ANGLE", "PointVisibility", "blocker_candidates", "check_visibility_options", "grid_offsets"]
 
@@ -121,7 +122,7 @@ def _section_meets_box(pts: Tensor, d: Tensor, half: Tensor, eps: float, box: tu
 def check_visibility_options(samples: Any, tol: Any, angle: Any, jitter: Any = True) -> None:
     """Raise for visibility settings out of range: ``samples`` an integer ≥ 1, ``tol`` ``None`` or a finite number
     ≥ 0, ``angle`` ``None`` or a finite number > 0 (radians), ``jitter`` a bool."""
-    check_sample_count(samples, "visibility_samples")
+    check_count(samples, "visibility_samples")
     if not isinstance(jitter, bool):
         raise ValueRangeError(f"visibility_jitter must be True or False; got {jitter!r}")
     if tol is not None and not (isinstance(tol, (int, float)) and math.isfinite(tol) and tol >= 0):

@@ -15,6 +15,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from .._checks import check_count
 from ..errors import ShapeError
 from .checks import check_facets
 from .duplicates import resolve_duplicates
@@ -360,8 +361,7 @@ class Scene:
             >>> fine.num_facets, int(parent.max())
             (72, 7)
         """
-        if not isinstance(k, int) or isinstance(k, bool) or k < 1:
-            raise ValueError(f"subdivide(k) needs an integer k >= 1; got {k!r}")
+        k = int(check_count(k, "k", note=" (subdivide(k): facets per edge)"))
         c = self._corners
         dev, dt = c.device, c.dtype
         F = c.shape[0]
