@@ -49,9 +49,9 @@ def test_counts_are_checked_by_one_rule() -> None:
     from torch_interreflect._checks import check_count
     from torch_interreflect.errors import ValueRangeError
 
-    assert check_count(3, "n") == 3 and check_count(np.int64(2), "n") == 2 and check_count(4.0, "n") == 4
+    assert check_count(3, "n") == 3 and check_count(np.int64(2), "n") == 2
     assert check_count(0, "n", minimum=0) == 0 and check_count(None, "n", optional=True) is None
-    for bad in (0, -1, 2.5, True, None, "3", float("nan")):
+    for bad in (0, -1, 2.5, 4.0, True, None, "3", float("nan"), torch.tensor(2)):
         with pytest.raises(ValueRangeError, match=r"n must be an integer >= 1 \(rays\); got"):
             check_count(bad, "n", note=" (rays)")
     with pytest.raises(ValueError, match="edge_supersample must be None or an integer >= 1; got 0"):

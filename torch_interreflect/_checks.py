@@ -3,6 +3,7 @@ expected and what came."""
 
 from __future__ import annotations
 
+import numbers
 from typing import Any
 
 import numpy as np
@@ -19,19 +20,18 @@ def check_count(value: Any, name: str, *, minimum: int = 1, optional: bool = Fal
     """``value`` as an ``int >= minimum`` (a count: samples, rays per side, a stride); ``None`` passes when
     ``optional``.
 
-    A bool, a number that is not a whole number, or one below ``minimum`` is a :class:`ValueRangeError` (a
-    ``ValueError``) naming ``name`` (and ``note``, e.g. the unit).
+    Anything but an integer (Python or numpy; not a bool, not a float, even a whole one: callers may use the value
+    as given), or one below ``minimum``, is a :class:`ValueRangeError` (a ``ValueError``) naming ``name`` (and
+    ``note``, e.g. the unit).
 
     Example:
-        >>> check_count(4.0, "samples"), check_count(None, "edge_supersample", optional=True)
-        (4, None)
+        >>> import numpy as np
+        >>> check_count(4, "samples"), check_count(np.int64(2), "k"), check_count(None, "edge", optional=True)
+        (4, 2, None)
     """
     if optional and value is None:
         return None
-    try:
-        ok = not isinstance(value, bool) and int(value) == value and int(value) >= minimum
-    except (TypeError, ValueError, RuntimeError):
-        ok = False
+    ok = isinstance(value, numbers.Integral) and not isinstance(value, bool) and int(value) >= minimum
     if not ok:
         raise ValueRangeError(f"{name} must be {'None or ' if optional else ''}an integer >= {minimum}{note}; got "
                               f"{value!r}")

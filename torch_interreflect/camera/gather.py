@@ -31,7 +31,7 @@ from .._checks import check_count
 from .._sparse import constant_product, sparse_matrix, to_csr
 from ..errors import ShapeError
 from ..geometry.raycast import RayCaster
-from ..geometry.scene import Scene
+from ..geometry.scene import Scene, area_average
 from ..lights import sun_direction
 from ..solver.api import solve
 from .fragments import coarse_points, primary_fragments
@@ -97,8 +97,7 @@ def _direct(scene: Scene, light: Any, frag: dict[str, Tensor], covered: Tensor |
         ray_h = h[frag["ray_fragment"]]
         cos = (-(sc.normals[ray_h] @ d)).clamp_min(0)
         per_ray = cos * frag["ray_free"]  # the shadow flags of primary_fragments(sun=), kept for image_grad
-        n = torch.bincount(frag["ray_fragment"], minlength=h.numel()).to(torch.float64)
-        return torch.zeros(h.numel(), dtype=torch.float64).index_add_(0, frag["ray_fragment"], per_ray) / n
+        return area_average(per_ray[:, None], frag["ray_fragment"], torch.ones_like(per_ray), h.numel())[:, 0]
     if not t.is_floating_point() or t.shape != (F,):
         raise ShapeError(f"light as a tensor must be a direction [3], a mask [F = {F}] or a factor [F]; got "
                          f"{list(t.shape)} ({t.dtype})")
@@ -325,11 +324,12 @@ def gather_operator(
 
 
 # ------------------------------------------------------------------------------------------- images
-def _columns(m: Tensor, x: Tensor) -> Tensor:
-    """``m [R, N] @ x [..., N, C]`` → ``[..., R, C]`` as one (sparse) matrix product over all columns."""
+def _columns(m: Tensor, x: Tensor, transposed: Tensor | None = None) -> Tensor:
+    """``m [R, N] @ x [..., N, C]`` → ``[..., R, C]`` as one (sparse) matrix product over all columns; with
+    ``transposed`` (``mᵀ`` in CSR, ``m`` already in ``x``'s dtype and device) the backward uses it."""
     lead, n, c = x.shape[:-2], x.shape[-2], x.shape[-1]
     cols = x.movedim(-2, 0).reshape(n, -1)
-    out = m.to(device=x.device, dtype=x.dtype) @ cols
+    out = m.to(device=x.device, dtype=x.dtype) @ cols if transposed is None else constant_product(m, transposed, cols)
     return out.reshape(m.shape[0], *lead, c).movedim(0, -2)
 
 
@@ -340,9 +340,7 @@ def _product(op: Gather, name: str, x: Tensor) -> Tensor:
     if not (torch.is_grad_enabled() and x.requires_grad) or m.layout != torch.sparse_csr or m.requires_grad:
         return _columns(m, x)
     moved, transposed = op._operand(name, x)
-    lead, n, c = x.shape[:-2], x.shape[-2], x.shape[-1]
-    out = constant_product(moved, transposed, x.movedim(-2, 0).reshape(n, -1))
-    return out.reshape(m.shape[0], *lead, c).movedim(0, -2)
+    return _columns(moved, x, transposed)
 
 
 def _to_image(op: Gather, pixels: Tensor) -> Tensor:

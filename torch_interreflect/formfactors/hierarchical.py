@@ -183,8 +183,7 @@ def _check_arguments(scene: Scene, eta: float, leaf_size: int, occlusion: Any, q
         check_count(val, name)
     if order not in (0, 1) or isinstance(order, bool):
         raise ValueRangeError(f"order must be 0 or 1; got {order!r}")
-    if isinstance(error_samples, bool) or not isinstance(error_samples, int) or error_samples < 0:
-        raise ValueRangeError(f"error_samples must be an integer >= 0; got {error_samples!r}")
+    check_count(error_samples, "error_samples", minimum=0)
 
 
 def _near_field(sc: Scene, tree: ClusterTree, na: np.ndarray, nb: np.ndarray, occlusion: Any, quadrature_tol: float,
