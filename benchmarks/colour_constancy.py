@@ -172,6 +172,23 @@ def _generate(args: argparse.Namespace) -> None:
             f.result()
 
 
+def _pathtraced_root(args: argparse.Namespace) -> Path:
+    return Path(args.data).parent / f"cc-pathtraced-{args.size}-{SPP}spp"
+
+
+def _pathtraced_set(args: argparse.Namespace) -> GeneratedDataset:
+    """The first ``args.pathtraced`` images of the path-traced set (its folder may hold more)."""
+    root = _pathtraced_root(args)
+    first = json.loads((root / "dataset.json").read_text())["indices"][: args.pathtraced]
+    return GeneratedDataset(root, None, first, geometry=True)
+
+
+def _held_out(args: argparse.Namespace, test_fraction: float) -> GeneratedDataset:
+    """The first ``args.max_test`` held-out scenes of the study's data."""
+    _, test_idx = split_indices(args.count, test_fraction)
+    return GeneratedDataset(args.data, None, test_idx[: args.max_test], geometry=True)
+
+
 def study(args: argparse.Namespace, out: Path) -> str:
     t_all = time.perf_counter()
     errors: dict[str, dict[str, list[np.ndarray]]] = {}
@@ -182,10 +199,8 @@ def study(args: argparse.Namespace, out: Path) -> str:
     pool = None if ex is None else (ex, args.workers)
     if args.pathtraced:
         t = time.perf_counter()
-        root = render_test_set(Path(args.data).parent / f"cc-pathtraced-{args.size}-{SPP}spp", args.pathtraced,
-                               args.size, progress=False)
-        first = json.loads((root / "dataset.json").read_text())["indices"][: args.pathtraced]  # a folder may hold more
-        sets["path-traced (Mitsuba)"] = GeneratedDataset(root, None, first, geometry=True)
+        render_test_set(_pathtraced_root(args), args.pathtraced, args.size, progress=False)
+        sets["path-traced (Mitsuba)"] = _pathtraced_set(args)
         seconds["path-traced set"] = time.perf_counter() - t
     try:
         t = time.perf_counter()
@@ -199,9 +214,7 @@ def study(args: argparse.Namespace, out: Path) -> str:
             res = run_train_cc(cfg)
             seconds[f"train seed {seed}"] = time.perf_counter() - t
             seconds.update({f"{k} seed {seed}": v for k, v in res["seconds"].items() if k != "data"})
-            _, test_idx = split_indices(args.count, cfg.test_fraction)
-            held_out = GeneratedDataset(args.data, None, test_idx[: args.max_test], geometry=True)
-            sets = {"held-out (generator)": held_out, **sets}
+            sets = {"held-out (generator)": _held_out(args, cfg.test_fraction), **sets}
             for name, test in sets.items():
                 t = time.perf_counter()
                 _score(test, cfg.out_dir, seed, errors.setdefault(name, {}), pool)
@@ -221,17 +234,10 @@ def report(path: Path, out: Path) -> str:
     args = argparse.Namespace(**saved["args"])
     errors = {n: {m: [np.array(x) for x in v] for m, v in e.items()} for n, e in saved["errors"].items()}
     kinds = saved.get("scene_kinds") or {}
-    for name, e in errors.items():
-        if name in kinds:
-            continue
-        n = len(next(iter(e.values()))[0])
-        if name.startswith("held-out"):
-            _, test_idx = split_indices(args.count, TrainConfig().test_fraction)
-            kinds[name] = scene_kinds(GeneratedDataset(args.data, None, test_idx[:n]))
-        else:
-            root = Path(args.data).parent / f"cc-pathtraced-{args.size}-{SPP}spp"
-            first = json.loads((root / "dataset.json").read_text())["indices"][:n]
-            kinds[name] = scene_kinds(GeneratedDataset(root, None, first))
+    for name in errors:
+        if name not in kinds:
+            test = _held_out(args, TrainConfig().test_fraction) if name.startswith("held-out") else None
+            kinds[name] = scene_kinds(test if test is not None else _pathtraced_set(args))
     sizes = {name: len(kinds[name]) for name in errors}
     return _report(args, errors, saved["seconds"], sizes, out, kinds)
 
