@@ -16,7 +16,7 @@ from torch import Tensor
 from .._checks import check_count
 from .._sparse import sparse_matrix
 from ..errors import ShapeError
-from ..formfactors.fused_points import point_sums
+from ..formfactors.fused_points import horizon_point_sums, point_sums
 from ..formfactors.visibility import blocker_candidates
 from ..geometry._polygon import bilinear, clip_polygons, facing_others, plane_eps
 from ..geometry.raycast import RayCaster
@@ -126,9 +126,6 @@ def point_form_factors(
     front = facing_others(scene)  # [F, F]: some corner of j strictly in front of i's plane
     fi, fj = torch.nonzero(front, as_tuple=True)
     need = blocker_candidates(sc, fi, fj, eps) if fi.numel() else torch.zeros(0, dtype=torch.bool)
-    # every point of facet i has i's tangent plane: clip each target once per facet pair, not per point
-    cpoly = clip_polygons(sc.corners[fj], sc.centroids[fi], sc.normals[fi], eps)
-    cpoly = cpoly[:, : max(3, int(_real_vertices(cpoly, eps).max()) if fi.numel() else 3)]
     caster = caster if caster is not None else RayCaster(sc)
     gen = torch.Generator().manual_seed(int(seed))
     o = torch.as_tensor(caster.origin)
@@ -143,7 +140,14 @@ def point_form_factors(
     start = torch.cumsum(counts, 0) - counts
     pid = first[h][pi] + torch.arange(pi.numel()) - start[pi]
     pj = fj[pid]
-    vals, in_front = point_sums(x, sc.normals[h], pi, cpoly, pid, (sc.centroids[fj], sc.normals[fj]))
+    vals_ahead = horizon_point_sums(x, sc.normals[h], sc.centroids[h], pi, sc.corners, pj, (sc.centroids, sc.normals),
+                                    eps)
+    if vals_ahead is None:  # the torch path: every point of facet i has i's tangent plane, so each target is
+        # clipped once per facet pair, not per point
+        cpoly = clip_polygons(sc.corners[fj], sc.centroids[fi], sc.normals[fi], eps)
+        cpoly = cpoly[:, : max(3, int(_real_vertices(cpoly, eps).max()) if fi.numel() else 3)]
+        vals_ahead = point_sums(x, sc.normals[h], pi, cpoly, pid, (sc.centroids[fj], sc.normals[fj]))
+    vals, in_front = vals_ahead
     blocked = torch.nonzero(need[pid] & (vals != 0)).reshape(-1)
     for s in range(0, blocked.numel(), PAIR_CHUNK):
         k = blocked[s : s + PAIR_CHUNK]

@@ -234,6 +234,26 @@ def point_factors(x, normal, rows, poly, which, centre, axis, out, ahead):
                     + (x[r, 2] - centre[w, 2]) * axis[w, 2]) > 0
 
 
+@njit(cache=True, parallel=True)
+def horizon_point_factors(x, normal, base, rows, corners, which, centre, axis, eps, blocks, out, ahead):
+    """:func:`point_factors` with each target facet clipped in the loop: ``corners[which[n]]`` (``[F, 4, 3]``, a
+    triangle's last corner repeated) clipped to the horizon ``(y − base_r)·normal_r >= −eps`` of point ``r =
+    rows[n]`` (``base [P, 3]``: a point of its plane), as :func:`..geometry._polygon.clip_polygons` does. The
+    pairs are cut into ``blocks`` runs (scratch arrays per run)."""
+    N = rows.shape[0]
+    for b in prange(blocks):
+        poly = np.empty((_KMAX, 3))
+        d = np.empty(4)
+        for n in range(N * b // blocks, N * (b + 1) // blocks):
+            r = rows[n]
+            w = which[n]
+            m = _clip(corners[w], 4, base[r, 0], base[r, 1], base[r, 2], normal[r, 0], normal[r, 1], normal[r, 2],
+                      eps, poly, d)
+            out[n] = _contour(x[r, 0], x[r, 1], x[r, 2], normal[r, 0], normal[r, 1], normal[r, 2], poly, m)
+            ahead[n] = ((x[r, 0] - centre[w, 0]) * axis[w, 0] + (x[r, 1] - centre[w, 1]) * axis[w, 1]
+                        + (x[r, 2] - centre[w, 2]) * axis[w, 2]) > 0
+
+
 @njit(cache=True, inline="always")
 def _edge_grad(ax, ay, az, bx, by, bz, n0, n1, n2, coef, out):
     """``coef ·`` gradients of one edge term ``γ (c·n)/|c|`` (``c = a × b``, ``γ = ∠(a, b)``) of the contour formula

@@ -17,7 +17,7 @@ from .compiled import launch, loops
 from .contour import point_polygon_factor
 from .fused import Backend, first_order_only, resolve_backend
 
-__all__ = ["point_polygon_factors", "point_sums"]
+__all__ = ["horizon_point_sums", "point_polygon_factors", "point_sums"]
 
 
 def _np(t: Tensor):
@@ -72,6 +72,46 @@ def point_sums(
         launch(loops().point_factors, *d, _np(rows.long()), _np(polygon.double()), _np(which.long()),
              _np(centre.double()), _np(axis.double()), out.numpy(), ahead.numpy())
     return out.to(x.dtype), ahead
+
+
+def horizon_point_sums(
+    x: Tensor,
+    normal: Tensor,
+    base: Tensor,
+    rows: Tensor,
+    corners: Tensor,
+    which: Tensor,
+    plane: tuple[Tensor, Tensor],
+    eps: float,
+) -> tuple[Tensor, Tensor] | None:
+    """:func:`point_sums` to whole facets, each clipped at the point's horizon inside the compiled loop (no clipped
+    polygons in memory); ``None`` where the compiled loop does not run (numba missing or disabled, tensors off the
+    CPU): clip with :func:`~torch_interreflect.geometry._polygon.clip_polygons` and call :func:`point_sums`.
+
+    Args:
+        x: Points in metres. Shape ``[P, 3]``.
+        normal: Unit normal at each point. Shape ``[P, 3]``.
+        base: A point of each point's tangent plane (e.g. its facet's centroid). Shape ``[P, 3]``.
+        rows: The point of each pair (int64 in ``[0, P)``). Shape ``[N]``.
+        corners: Facet corners (a triangle's last corner repeated). Shape ``[F, 4, 3]``.
+        which: The facet of each pair (int64 in ``[0, F)``). Shape ``[N]``.
+        plane: ``(centre [F, 3], axis [F, 3])``: a plane per facet, as in :func:`point_sums`.
+        eps: Corners within ``eps`` (metres) below the horizon count as above it.
+
+    Returns:
+        ``(factors, ahead)`` as :func:`point_sums` (float64), or ``None``.
+    """
+    if not resolve_backend("auto", x, normal, corners):
+        return None
+    centre, axis = plane
+    out = torch.empty(rows.numel(), dtype=torch.float64)
+    ahead = torch.empty(rows.numel(), dtype=torch.bool)
+    if rows.numel():
+        blocks = max(1, min(256, rows.numel() // 4096))
+        launch(loops().horizon_point_factors, _np(x.double()), _np(normal.double()), _np(base.double()),
+               _np(rows.long()), _np(corners.double()), _np(which.long()), _np(centre.double()), _np(axis.double()),
+               float(eps), blocks, out.numpy(), ahead.numpy())
+    return out, ahead
 
 
 class _PointPolygon(torch.autograd.Function):
