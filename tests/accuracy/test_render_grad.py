@@ -31,6 +31,17 @@ def _plan(angle: torch.Tensor, light="uniform"):
 SUN = [-0.7, 0.1, -0.4]
 
 
+def test_planning_a_scene_whose_corners_require_grad_warns_nothing():
+    """The planner's bookkeeping (RMS of estimates, the solution's spread) works on detached values: no
+    "converting a tensor with requires_grad=True to a scalar" warning (the README's snippet printed one)."""
+    a = torch.tensor(50.0, dtype=F64, requires_grad=True)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        p = ti.accuracy.plan(ti.scenes.v_groove(a, divisions=2), torch.full((8,), 0.8, dtype=F64), SUN,
+                             accuracy=2e-2)
+    assert p.report.iterations == 1
+
+
 @pytest.mark.parametrize("light", ["uniform", "sky", SUN])
 def test_render_passes_gradients_to_the_groove_angle(light):
     """d sum(E) / d angle through the refined leaves equals central differences of the same refinement on the

@@ -105,7 +105,7 @@ def relative_change(a: Tensor, b: Tensor) -> Tensor:
 
 def rms(x: Tensor) -> float:
     """Root mean square of ``x`` (0 when empty)."""
-    return float(x.square().mean().sqrt()) if x.numel() else 0.0
+    return float(x.detach().square().mean().sqrt()) if x.numel() else 0.0
 
 
 #: Directions per axis of the ray-cast parts of the sky (:func:`torch_interreflect.lights.sky`), and the smaller
