@@ -110,6 +110,23 @@ def test_accuracy_benchmark_one_tiny_case(tmp_path: Path) -> None:
     assert ab.cheapest_reaching(curve, 0.0)[1] == "not reached"
 
 
+def test_accuracy_benchmark_reads_mitsuba_at_the_request() -> None:
+    """Mitsuba's time at the requested error over render's, per request, from speed_vs_error.md: bright scenes
+    only (the dark one and the Cornell box are left out), geometric mean over the scenes."""
+    from benchmarks import accuracy as ab
+    from benchmarks.speed_vs_error import rows_from_markdown, time_at_error
+
+    rows = rows_from_markdown(ab.RESULTS / "speed_vs_error.md")
+    case = {"accuracy": 1e-2, "seconds": 0.5, "m": {}}
+    results = {n: {"noise": 3e-4, "cases": [dict(case)]} for n in
+               ("vgroove30_sun_r9", "box_corner_sun_r9", "vgroove30_sun_r2", "cornell_sky_r9")}
+    lines = ab.against_mitsuba(results, rows)
+    ratios = [time_at_error(ab.md_curves(n, rows, 3e-4)[0], 1e-2) / 0.5 for n in ("vgroove30_sun_r9",
+                                                                                   "box_corner_sun_r9")]
+    geo = math.sqrt(ratios[0] * ratios[1])
+    assert lines[-1] == f"| 0.01 | 2 | {geo:.3g}× | {min(ratios):.2g}–{max(ratios):.2g}× |"
+
+
 @pytest.mark.skipif(not mr.available("llvm_ad_spectral"), reason="Mitsuba 3 (bench extra) not installed")
 def test_pathtraced_test_set_agrees_with_the_library(tmp_path: Path) -> None:
     """Mitsuba's spectral image of a test sample against the library's final gather of the same spectra.
