@@ -80,6 +80,10 @@ class TestPointFormFactors:
         pair (clip_polygons) then sums. The same factors (measured: bit for bit) on a V-groove whose facets cross
         each other's horizons and a box with blockers (triangles included)."""
         from torch_interreflect.camera import point_kernel
+        from torch_interreflect.formfactors.compiled import loops
+
+        if loops() is None:
+            pytest.skip("numba is not available: both paths are the torch one")
 
         groove = ti.scenes.v_groove(30.0, divisions=4, dtype=torch.float64)
         box = ti.scenes.cornell_box(dtype=torch.float64).subdivide(2)[0]

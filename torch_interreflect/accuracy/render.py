@@ -16,9 +16,11 @@ its share:
   ray-cast visibility (a third facet can block some of their pairs) converge slowly and unevenly under refinement
   (the Cornell box: about order 0.65), so they always get the slowest ratio, 0.8 (estimate = 4 × change).
   After a refinement the outputs are extrapolated against each facet one split back (Richardson,
-  ``x + c (x − x_coarse)`` with ``c = q/(1 − q) ≤ 1`` from one ratio for the scene; not on facets with ray-cast
-  visibility), and the estimate becomes that of the extrapolated values (:mod:`.refine`); ``extrapolate=False``
-  turns it off.
+  ``x + c (x − x_coarse)`` with ``c = q/(1 − q) ≤ 2/3`` from one ratio for the scene, 2/3 until one is measured;
+  not on facets with ray-cast visibility), and the estimate of an extrapolated facet is how far ``c`` can be from
+  its own (a third of its change at its first split), or the change of its extrapolated value when larger
+  (:mod:`.refine`); ``extrapolate=False`` turns it off. The discretisation's share is lowered by the measured error of
+  a ray-cast light (the sky) when that is small, so that the total can meet the request.
 - **Form factors**: the per-entry quadrature tolerance (the Gauss order of every pair follows from it and the
   pair's distance/size ratio).
 - **Sparsification**: entries are dropped (in reciprocal pairs, so conjugate gradients still apply) while the

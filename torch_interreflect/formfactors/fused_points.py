@@ -86,7 +86,8 @@ def horizon_point_sums(
 ) -> tuple[Tensor, Tensor] | None:
     """:func:`point_sums` to whole facets, each clipped at the point's horizon inside the compiled loop (no clipped
     polygons in memory); ``None`` where the compiled loop does not run (numba missing or disabled, tensors off the
-    CPU): clip with :func:`~torch_interreflect.geometry._polygon.clip_polygons` and call :func:`point_sums`.
+    CPU, inputs that require grad): clip with :func:`~torch_interreflect.geometry._polygon.clip_polygons` and call
+    :func:`point_sums`.
 
     Args:
         x: Points in metres. Shape ``[P, 3]``.
