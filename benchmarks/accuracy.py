@@ -34,6 +34,7 @@ import math
 import multiprocessing as mp
 import os
 import platform
+import statistics
 import time
 import traceback
 from collections.abc import Sequence
@@ -488,7 +489,7 @@ def against_mitsuba(results: dict, md_rows: dict) -> list[str]:
              "| requested | scenes | geometric mean | range |", "|---:|---:|---:|---|"]
     for acc in sorted(per, reverse=True):
         x = per[acc]
-        g = math.exp(sum(math.log(v) for v in x) / len(x))
+        g = statistics.geometric_mean(x)
         lines.append(f"| {acc:g} | {len(x)} | {g:.3g}× | {min(x):.2g}–{max(x):.2g}× |")
     return lines
 
@@ -538,7 +539,7 @@ def summary(results: dict) -> list[str]:
             if math.isfinite(t):
                 ratios.append(c["seconds"] / t)
         if ratios:
-            g = math.exp(sum(math.log(x) for x in ratios) / len(ratios))
+            g = statistics.geometric_mean(ratios)
             lines += [
                 "",
                 f"Adaptive time / time of the cheapest uniform `k` reaching {what} (this run, {len(ratios)} "
