@@ -99,6 +99,57 @@ def test_segments_inside_along_and_outside_a_facet():
     assert none.shape == (0,) and none.dtype == torch.bool
 
 
+def _all_triplets(scene):
+    """The contact test on every (facet, edge of another facet) triplet: the ``O(F²)`` reference of the plane
+    prefilter (same conditions, no candidates dropped)."""
+    from torch_interreflect.geometry._polygon import plane_eps
+    from torch_interreflect.geometry.contacts import _through_interior
+
+    sc = scene.to(torch.float64)
+    c, n, eps = sc.corners, sc.normals, plane_eps(scene)
+    F = sc.num_facets
+    i, j, k = (t.reshape(-1) for t in torch.meshgrid(torch.arange(F), torch.arange(F), torch.arange(4), indexing="ij"))
+    a, b = c[j, k], torch.roll(c, -1, dims=1)[j, k]
+    o = (n * c[:, 0]).sum(-1)
+    keep = (i != j) & ((n[i] * n[j]).sum(-1).abs() <= 1 - 1e-9)
+    keep &= (((a * n[i]).sum(-1) - o[i]).abs() <= eps) & (((b * n[i]).sum(-1) - o[i]).abs() <= eps)
+    lo, hi = c[i].min(1).values, c[i].max(1).values
+    keep &= ((torch.minimum(a, b) <= hi + eps) & (torch.maximum(a, b) >= lo - eps)).all(-1)
+    i, j, a, b = i[keep], j[keep], a[keep], b[keep]
+    hit = _through_interior(c[i], n[i], a, b, eps)
+    return sorted(set(zip(i[hit].tolist(), j[hit].tolist(), strict=True)))
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_plane_prefilter_finds_every_contact(dtype):
+    """Edges are matched to plane groups first (O(F × planes)); the pairs equal the all-triplets test on random
+    generator scenes (blocks on floors, rotated boxes; 24 seeds, also subdivided) and the Cornell box."""
+    import numpy as np
+
+    from torch_interreflect.training.random_scenes import random_scene
+
+    scenes = [ti.scenes.cornell_box(3, light=False, dtype=dtype)]
+    for seed in range(24):
+        scene = random_scene(np.random.default_rng(seed), dtype=dtype)[0]
+        scenes += [scene, scene.subdivide(2)[0]]
+    found = 0
+    for scene in scenes:
+        pairs = contact_pairs(scene)
+        assert pairs == _all_triplets(scene)
+        found += len(pairs)
+    assert found > 100  # the scenes have contacts to find
+
+
+def test_candidates_in_small_runs(monkeypatch):
+    """The (facet, candidate edge) triplets are tested in runs of ``PAIR_CHUNK``: tiny runs give the same pairs."""
+    from torch_interreflect.geometry import contacts
+
+    box = ti.scenes.cornell_box(3, light=False, dtype=torch.float64)
+    full = contact_pairs(box)
+    monkeypatch.setattr(contacts, "PAIR_CHUNK", 7)
+    assert contact_pairs(box) == full and len(full) == 32
+
+
 def test_not_a_scene_raises():
     with pytest.raises(TypeError, match="expects a Scene"):
         split_at_contacts(torch.zeros(2, 4, 3))

@@ -191,8 +191,8 @@ def plane_ids(sc: Scene, eps: float) -> Tensor:
     Normals and offsets are rounded well above the float noise of the scene's dtype (``eps``, e.g.
     :func:`plane_eps`); a boundary between two rounding cells only splits a plane into two ids.
     """
-    corners, normals = sc.corners, sc.normals
-    offs = (normals * sc.centroids).sum(-1)
+    corners, normals = sc.corners.detach(), sc.normals.detach()
+    offs = (normals * sc.centroids.detach()).sum(-1)
     size = float((corners.reshape(-1, 3).max(0).values - corners.reshape(-1, 3).min(0).values).norm())
     res = max(1e-6, 100.0 * eps / max(size, 1e-300))
     key = torch.round(torch.cat([normals, offs[:, None] / max(size, 1e-300)], dim=1) / res)
