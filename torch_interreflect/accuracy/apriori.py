@@ -1,20 +1,27 @@
 """An a-priori estimate of the discretisation error of one solve, from the irradiance at the facets' corners.
 
-The piecewise-constant model is exact except that it lets every source facet ``j`` send its *average* radiosity,
-while facet ``i`` sees ``j`` through a kernel that is not uniform over ``j``. With ``E(y)`` the true irradiance,
-the error ``e`` of the solved facet averages obeys ``(I − F R) e = F R δ`` with ``|δ_ij| ≤ osc_j = max_{y ∈ j}
-|E(y) − Ē_j|``, so ``|e| ≤ (I − F R)⁻¹ F R osc`` componentwise (all terms are non-negative). :func:`estimate`
-evaluates ``E`` at the corners of every facet (nudged inside; one point per vertex and plane) by one exact gather
-from the solved facets (Lambert's point-to-polygon formula with occlusion,
-:func:`torch_interreflect.camera.point_form_factors`, and the light at the point), takes ``osc`` from those values
-and solves once more with the same form factors.
+The piecewise-constant model lets every source facet ``j`` send its *average* radiosity ``B̄_j``. With ``B(y)`` the
+true radiosity and ``F(y → i)`` the form factor from a point ``y`` of ``j`` to facet ``i``, the facet averages
+obey exactly ``(I − F R) Ē = E0 + local`` with ``local_i = Σ_j (A_j / A_i) cov_{y ∈ j}(F(y → i), B(y))``, so the
+error of the solved averages is ``e = (I − F R)⁻¹ local``: second order, the product of how much the kernel and
+the radiosity vary over each source facet. :func:`estimate` evaluates ``E`` at the corners of every facet (nudged
+inside; one point per vertex and plane) by one exact gather from the solved facets (Lambert's point-to-polygon
+formula with occlusion, :func:`torch_interreflect.camera.point_form_factors`, which also gives ``F(y → i)`` at the
+corners, and the light at the point), takes each covariance over the four corners, sums their magnitudes (no
+cancellation between sources is counted on) and solves once more with the same form factors.
 
-The bound would hold with the true ``osc``; the gather from a coarse solution estimates it. Against converged
-Mitsuba and extrapolated fine solutions (V-grooves at 30° and 45°, a box corner, a W shape, the Cornell box under
-a sky, r = 0.2 to 0.95, 2 to 200 facets) the RMS of the bound is 2.5–15× the actual RMS error (:data:`KAPPA` times
-the bound is what is reported: still ≥ 1.25× the actual RMS error in every case, and above the actual error on
-≥ 94 % of the facets). It costs one gather of one point per vertex and plane (``F`` to ``4 F`` points: about a
-level-0 kernel), against the ``16×`` larger kernel of a forced first split.
+A source facet whose own rows rest on ray-cast visibility (a partly hidden floor under a sky) can vary inside in
+ways its corners miss: it contributes :data:`OSC_SHARE` of the bound ``F_ij r_j osc_j`` (``osc_j`` the largest
+deviation at its corners) instead.
+
+Against extrapolated fine solutions (the accuracy benchmark's scenes: V-grooves at 30° and 45°, a box corner, a W
+shape under a sun, r = 0.2 and 0.9, 48 to 200 facets) the RMS estimate is 3.0–4.2× the actual RMS error, and at
+least the actual error on 80–100 % of the facets (the bound ``(I − F R)⁻¹ F R osc`` used before: 11–20× the RMS
+error, so the planner refined where one solve already met the request). The Cornell box under a sky (all its
+sources occluded) keeps the bound: 4.0× (r = 0.9) and 1.7× (r = 0.2). The corners' covariance is about three
+times the area covariance where both vary linearly, which is the margin. It costs one gather of one point per
+vertex and plane (``F`` to ``4 F`` points: about a level-0 kernel), against the ``16×`` larger kernel of a
+forced first split.
 """
 
 from __future__ import annotations
@@ -32,12 +39,13 @@ from ..geometry.raycast import RayCaster
 from ..geometry.scene import Scene
 from ..solver.api import solve
 
-__all__ = ["KAPPA", "estimate"]
+__all__ = ["COV_BLOCK", "OSC_SHARE", "estimate"]
 
-#: Share of the bound ``(I − F R)⁻¹ F R osc`` reported as the estimate (measured: the actual RMS error is
-#: 0.07–0.4 of the bound, and 0.67 of it on the 16-facet Cornell box at r = 0.2, where the sky's sampling error
-#: dominates).
-KAPPA = 0.5
+#: Share of the bound ``F_ij r_j osc_j`` taken for a source facet with occluded pairs.
+OSC_SHARE = 0.5
+
+#: Entries of the dense block of ``cov_ji`` (source facets × facets × columns) built at a time.
+COV_BLOCK = 1 << 22
 
 #: Visibility rays per side of a target facet for the gather at the corners (``samples²`` per blockable pair).
 GATHER_SAMPLES = 3
@@ -101,9 +109,41 @@ def _direct_at(light: Any, scene: Scene, x: Tensor, facet: Tensor, index: Tensor
     return g64[:, None].expand(index.shape)
 
 
+def _corner_covariance(factors: Tensor, index: Tensor, dB: Tensor, areas: Tensor) -> Tensor:
+    """``local_i = Σ_j (A_j / A_i) |cov_j(F(· → i), B)|`` with the covariance over facet ``j``'s four corners:
+    ``cov_ji = ¼ Σ_c F(p_jc → i) dB_jc`` (``dB`` sums to zero over the corners, so ``F``'s own mean drops out).
+
+    Args:
+        factors: Point-to-facet form factors, sparse COO ``[P, n]`` (coalesced).
+        index: The point of each facet's corner. Shape ``[n, 4]``.
+        dB: Radiosity at each corner minus the mean over the facet's corners. Shape ``[n, 4, B]``.
+        areas: Facet areas in m². Shape ``[n]``.
+
+    Returns:
+        ``local`` (float64). Shape ``[n, B]``.
+    """
+    n, B = index.shape[0], dB.shape[-1]
+    row, col = factors.indices()
+    val = factors.values()
+    crow = torch.searchsorted(row, torch.arange(factors.shape[0] + 1))  # rows are sorted (coalesced)
+    acc = torch.zeros(n, B, dtype=torch.float64)
+    per = max(1, COV_BLOCK // max(1, n * B))  # source facets per block: a dense [per, n, B] block of cov_ji
+    for j0 in range(0, n, per):
+        j1 = min(n, j0 + per)
+        p = index[j0:j1].reshape(-1)  # the block's corner slots (4 per facet), each a row of factors
+        cnt = crow[p + 1] - crow[p]
+        slot = torch.repeat_interleave(torch.arange(p.numel()), cnt)
+        ent = crow[p][slot] + torch.arange(slot.numel()) - (torch.cumsum(cnt, 0) - cnt)[slot]
+        cov = torch.zeros(j1 - j0, n, B, dtype=torch.float64)
+        cov.index_put_((slot // 4, col[ent]), val[ent][:, None] * dB[j0:j1].reshape(-1, B)[slot], accumulate=True)
+        acc += (areas[j0:j1, None, None] * cov.abs()).sum(0) / 4
+    return acc / areas[:, None].clamp_min(1e-300)
+
+
 @torch.no_grad()
 def estimate(scene: Scene, K: FormFactors, refl: Tensor, g: Tensor, h: Tensor, light: Any) -> Tensor:
-    """:data:`KAPPA` times the bound ``(I − F R)⁻¹ F R osc`` of the discretisation error, relative, per facet.
+    """``(I − F R)⁻¹ local``: the error of the piecewise-constant solve, its sources estimated from the corners
+    (see the module docstring), relative, per facet.
 
     Args:
         scene: The solved scene (``n`` facets). K: Its form factors.
@@ -118,21 +158,30 @@ def estimate(scene: Scene, K: FormFactors, refl: Tensor, g: Tensor, h: Tensor, l
     """
     n = scene.num_facets
     x, facet, index = _corner_points(scene)
-    caster = RayCaster(scene.to(torch.float64).to("cpu"))
+    sc = scene.to(torch.float64).to("cpu")
+    caster = RayCaster(sc)
     factors, covered, _ = point_form_factors(scene, x, facet, samples=GATHER_SAMPLES, caster=caster)
     e0 = _direct_at(light, scene, x, facet, index, factors, covered, g, caster)  # [n, 4]
     h64 = h.detach().to(torch.float64).cpu()
     r64 = refl.detach().to(torch.float64).cpu().expand_as(h64)
     rh = (r64 * h64).movedim(-2, 0)  # [n, ..., C]
     gathered = torch.sparse.mm(factors, rh.reshape(n, -1))  # the solved radiosity at the points [P, B]
-    at = e0[..., None] + gathered[index]  # at every facet's corners [n, 4, B]
-    hh = h64.movedim(-2, 0).reshape(n, -1)
-    osc = (at - hh[:, None, :]).abs().amax(1)  # [n, B]
-    osc = osc.reshape(rh.shape).movedim(0, -2)  # [..., n, C]
+    at = e0[..., None] + gathered[index]  # irradiance at every facet's corners [n, 4, B]
+    radiosity = r64.movedim(-2, 0).reshape(n, 1, -1) * at
     K64 = K.to(torch.float64) if K.dtype != torch.float64 else K
     K64 = K64.to("cpu") if K64.device.type != "cpu" else K64
-    local = K64.matmul(r64 * osc)
-    bound = solve(K64, r64, local, tol=1e-3) if bool(local.any()) else local
-    rel = bound.abs() / h64.abs().clamp_min(1e-300)
+    occ = K.info.get("occluded_facets")
+    occ = occ.cpu() if occ is not None else torch.zeros(n, dtype=torch.bool)
+    dB = radiosity - radiosity.mean(1, keepdim=True)
+    dB[occ] = 0.0  # sources whose own light rests on visibility: bounded below instead
+    local = _corner_covariance(factors, index, dB, sc.areas.detach())  # [n, B]
+    if bool(occ.any()):
+        hh = h64.movedim(-2, 0).reshape(n, -1)
+        osc = (at - hh[:, None, :]).abs().amax(1) * occ[:, None]  # [n, B]
+        rcol = r64.movedim(-2, 0).reshape(n, -1)
+        local = local + OSC_SHARE * K64.matmul(rcol * osc)
+    local = local.reshape(rh.shape).movedim(0, -2)  # [..., n, C]
+    err = solve(K64, r64, local, tol=1e-3) if bool(local.any()) else local
+    rel = err.abs() / h64.abs().clamp_min(1e-300)
     rel = rel.movedim(-2, 0).reshape(n, -1)
-    return KAPPA * (rel.amax(1) if rel.shape[1] else rel.new_zeros(n))
+    return rel.amax(1) if rel.shape[1] else rel.new_zeros(n)
