@@ -129,8 +129,8 @@ def test_bad_light_input():
         ti.lights.sky(s, other, torch.ones(3))
 
 
-def test_sky_discounts_back_faces_seen_from_under_a_block():
-    # a unit floor with a bottomless box over its centre quarter: that quarter sees only the box's inside
+def _bottomless_box_on_floor():
+    """A unit floor with a bottomless box over its centre quarter: that quarter sees only the box's inside."""
     floor = ti.scenes.grid_quads([0, 0, 0], [1, 0, 0], [0, 1, 0], 1, 1)
     lo, hi, h = 0.25, 0.75, 0.3
     ex, ey, ez = [hi - lo, 0, 0], [0, hi - lo, 0], [0, 0, h]
@@ -143,7 +143,11 @@ def test_sky_discounts_back_faces_seen_from_under_a_block():
     ]
     import numpy as np
 
-    scene = ti.Scene.from_polygons(torch.tensor(np.concatenate([floor, *box]), dtype=torch.float64))
+    return ti.Scene.from_polygons(torch.tensor(np.concatenate([floor, *box]), dtype=torch.float64))
+
+
+def test_sky_discounts_back_faces_seen_from_under_a_block():
+    scene = _bottomless_box_on_floor()
     b = ti.lights.back_coverage(scene)
     # 16 of the 8 × 8 points lie under the box, fully covered (a ray-cast estimate: rays grazing the seam
     # between the floor and the walls can slip out)
@@ -157,6 +161,25 @@ def test_sky_discounts_back_faces_seen_from_under_a_block():
     assert abs(float(E0[0, 0]) - expected) < 0.01 * math.pi
     plain = ti.lights.sky(scene, K, torch.ones(1, dtype=torch.float64), backfaces=False)
     assert float(plain[0, 0]) > float(E0[0, 0])
+
+
+def test_sky_on_some_facets_equals_those_rows_of_the_full_call():
+    """``facets=``: the rows of a subset, bit for bit (rays are seeded per facet): escaping rays on the occluded
+    facets, back coverage and ``1 − Σ_j F_ij`` on the others, in any order; bad indices raise."""
+    box = _bottomless_box_on_floor().subdivide(2)[0]
+    K = ti.form_factors(box)
+    occ = K.info["occluded_facets"]
+    assert bool(occ.any()) and bool((~occ).any())
+    spd = torch.tensor([[1.0, 2.0]], dtype=torch.float64)
+    some = torch.tensor([20, 3, 17, 0, 23, 9, 12, 5])
+    for backfaces in ("auto", True):  # True: back rays from the lid's facets too
+        full = ti.lights.sky(box, K, spd, backfaces=backfaces)
+        assert torch.equal(ti.lights.sky(box, K, spd, backfaces=backfaces, facets=some), full[..., some, :])
+    assert ti.lights.sky(box, K, spd, facets=some[:0]).shape == (1, 0, 2)
+    with pytest.raises(ValueRangeError, match=r"\[0, 24\)"):
+        ti.lights.sky(box, K, spd, facets=torch.tensor([24]))
+    with pytest.raises(ShapeError, match="integer tensor"):
+        ti.lights.sky(box, K, spd, facets=torch.tensor([0.5]))
 
 
 @pytest.mark.parametrize("kw", [dict(sky_samples=0), dict(sky_samples=2.5), dict(sky_samples=True)])

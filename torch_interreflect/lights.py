@@ -275,6 +275,7 @@ def sky(
     *,
     backfaces: Literal["auto"] | bool = "auto",
     sky_samples: int = 16,
+    facets: Tensor | None = None,
 ) -> Tensor:
     """Direct irradiance from a uniform diffuse sky of radiance ``spd``: ``E0_i = π L (1 − Σ_j F_ij − b_i)``.
 
@@ -293,9 +294,11 @@ def sky(
             facet, both with low-discrepancy offsets:
             :func:`~torch_interreflect.formfactors.hemisphere.hemisphere_fractions`) for the ray-cast parts (``b``,
             and the open part of facets with occluded pairs; formerly ``samples``).
+        facets: Only these facets' rows (int64 ``[k]``, e.g. the new facets of a refined mesh whose other values
+            are known): rays are cast from them alone, with the same values as in the full call.
 
     Shape:
-        - output: ``[..., F, L]``
+        - output: ``[..., F, L]`` (``[..., k, L]`` with ``facets``)
 
     Example:
         >>> import torch, torch_interreflect as ti
@@ -312,31 +315,48 @@ def sky(
     if backfaces not in ("auto", True, False):
         raise ValueError(f"backfaces must be 'auto', True or False; got {backfaces!r}")
     check_count(sky_samples, "sky_samples")
+    F = scene.num_facets
+    rows = _facet_rows(facets, F)
     open_part = 1.0 - form_factors.row_sums().to(torch.float64).cpu()  # keeps the gradient of F (module docstring)
+    open_part = open_part if rows is None else open_part[rows]
     if backfaces is not False:
-        F = scene.num_facets
         # where rows of F rest on ray-cast visibility, 1 − Σ_j F_ij is a small difference of estimates: count the
         # escaping rays directly instead (both sides of every facet block the sky); elsewhere subtract the part of
         # the hemisphere that sees some facet's back. One pass of rays serves both.
         approx = form_factors.info.get("occluded_facets")
         approx = approx.cpu() if approx is not None else torch.zeros(F, dtype=torch.bool)
         maybe_back = facing_any(scene, one_way=True) if backfaces == "auto" else torch.ones(F, dtype=torch.bool)
+        ids = torch.arange(F) if rows is None else rows
+        approx, maybe_back = approx[ids], maybe_back[ids]
         open_part = open_part.clone()
         sc = _detached_cpu(scene)
-        escape_idx = torch.nonzero(approx).reshape(-1)
-        back_idx = torch.nonzero(maybe_back & ~approx).reshape(-1)
-        caster = RayCaster(sc) if escape_idx.numel() or back_idx.numel() else None  # one BVH for both passes
-        if escape_idx.numel():
+        escape_pos = torch.nonzero(approx).reshape(-1)  # positions in the output; the facets are ids[pos]
+        back_pos = torch.nonzero(maybe_back & ~approx).reshape(-1)
+        caster = RayCaster(sc) if escape_pos.numel() or back_pos.numel() else None  # one BVH for both passes
+        if escape_pos.numel():
             # the escaping rays' count as the value, the gradient of 1 − Σ_j F_ij (which carries the moving shadow
             # edges of its occluded pairs, see form_factors) as its derivative
-            from_f = open_part[escape_idx]
-            open_part[escape_idx] = hemisphere_fractions(sc, escape_idx, samples=sky_samples, points=8, back=False,
-                                                         caster=caster)[0] + (from_f - from_f.detach())
-        if back_idx.numel():
-            open_part[back_idx] = open_part[back_idx] - hemisphere_fractions(
-                sc, back_idx, samples=sky_samples, points=8, escape=False, caster=caster)[1]
+            from_f = open_part[escape_pos]
+            open_part[escape_pos] = hemisphere_fractions(sc, ids[escape_pos], samples=sky_samples, points=8,
+                                                         back=False, caster=caster)[0] + (from_f - from_f.detach())
+        if back_pos.numel():
+            open_part[back_pos] = open_part[back_pos] - hemisphere_fractions(
+                sc, ids[back_pos], samples=sky_samples, points=8, escape=False, caster=caster)[1]
     open_part = open_part.clamp_min(0).to(spd.dtype).to(spd.device)
     return math.pi * open_part[:, None] * spd[..., None, :]
+
+
+def _facet_rows(facets: Tensor | None, F: int) -> Tensor | None:
+    """``facets`` checked: int64 ``[k]`` indices in ``[0, F)`` on the CPU (``None`` passes through)."""
+    if facets is None:
+        return None
+    if not isinstance(facets, Tensor) or facets.ndim != 1 or facets.is_floating_point() or facets.is_complex():
+        got = f"{facets.dtype} {list(facets.shape)}" if isinstance(facets, Tensor) else type(facets).__name__
+        raise ShapeError(f"facets must be an integer tensor [k] of facet indices; got {got}")
+    rows = facets.detach().to("cpu", torch.int64)
+    if rows.numel() and (int(rows.min()) < 0 or int(rows.max()) >= F):
+        raise ValueRangeError(f"facets must lie in [0, {F}); got [{int(rows.min())}, {int(rows.max())}]")
+    return rows
 
 
 @renamed_keywords(samples="sky_samples")

@@ -355,6 +355,31 @@ def test_a_priori_estimate_in_small_blocks(groove, monkeypatch):
     assert bool((whole > 0).all())
 
 
+def test_kept_leaves_keep_their_sky_rays():
+    """After a split, a kept leaf whose sky value is a count of escaping rays keeps the value it had; every other
+    leaf gets the value of a full cast."""
+    from torch_interreflect.accuracy.kernel import leaf_kernel
+    from torch_interreflect.accuracy.leaves import Leaves, light_factor, split
+
+    box = ti.scenes.cornell_box(1, light=False, dtype=D)
+    leaves = Leaves(box, torch.arange(box.num_facets))
+    K0 = leaf_kernel(box, 1e-4)
+    g0 = light_factor("sky", box, K0, leaves.user, box.num_facets)
+    sel = torch.zeros(box.num_facets, dtype=torch.bool)
+    sel[::3] = True
+    new = split(leaves, sel)
+    K1 = leaf_kernel(new.scene, 1e-4, K0, new.kept)
+    full = light_factor("sky", new.scene, K1, new.user, box.num_facets)
+    reused = light_factor("sky", new.scene, K1, new.user, box.num_facets, g0[new.kept])
+    m = new.kept.numel()
+    occ = K1.info["occluded_facets"][:m]
+    assert bool(occ.any())
+    torch.testing.assert_close(reused[:m][occ], g0[new.kept][occ], rtol=0, atol=0)
+    assert not torch.equal(full[:m][occ], g0[new.kept][occ])  # a full cast draws other rays (new indices)
+    torch.testing.assert_close(reused[:m][~occ], full[:m][~occ], rtol=0, atol=0)
+    torch.testing.assert_close(reused[m:], full[m:], rtol=0, atol=0)
+
+
 def test_dark_scene_is_not_refined_when_one_solve_meets_the_target(groove):
     """r = 0.2: the a-priori estimate of the solve on the user's facets already meets 1e-2, so no refinement."""
     ref = _uniform_reference(groove, 0.2, "uniform")

@@ -195,14 +195,17 @@ def _start(pb: Problem) -> Refinement:
 
 
 def _kernel_and_light(
-    pb: Problem, leaves: Leaves, previous: FormFactors | None = None, kept: Tensor | None = None
+    pb: Problem, leaves: Leaves, previous: FormFactors | None = None, kept: Tensor | None = None,
+    previous_g: Tensor | None = None,
 ) -> tuple[FormFactors, Tensor]:
-    """Form factors and light factor ``[n]`` of ``leaves`` (reusing ``previous`` for the ``kept`` ones), timed."""
+    """Form factors and light factor ``[n]`` of ``leaves`` (reusing ``previous`` and ``previous_g`` for the ``kept``
+    ones), timed."""
     t = time.perf_counter()
     K = leaf_kernel(leaves.scene, pb.quadrature_tol, previous, kept)
     pb.seconds["form_factors"] += time.perf_counter() - t
     t = time.perf_counter()
-    g = light_factor(pb.light, leaves.scene, K, leaves.user, pb.F)
+    reuse = previous_g[kept.to(previous_g.device)] if previous_g is not None and kept is not None else None
+    g = light_factor(pb.light, leaves.scene, K, leaves.user, pb.F, reuse)
     pb.seconds["light"] += time.perf_counter() - t
     return K, g
 
@@ -243,7 +246,7 @@ def _light_error(pb: Problem, st: Refinement, refl_leaf: Tensor) -> Tensor:
 @torch.no_grad()
 def _solve_level(pb: Problem, st: Refinement) -> Tensor:
     """Solve the current leaves; returns the output (irradiance or RGB) on the user's facets ``[..., F, C]``."""
-    st.K, st.g = _kernel_and_light(pb, st.leaves, st.K, st.leaves.kept)
+    st.K, st.g = _kernel_and_light(pb, st.leaves, st.K, st.leaves.kept, st.g)
     occ = st.K.info.get("occluded_facets")
     if occ is not None and bool(occ.any()):  # user facets whose rows rest on ray-cast visibility
         st.sampled[st.leaves.user.cpu()[occ.cpu()]] = True
