@@ -324,12 +324,27 @@ def uniform_curve(
         for n in group:
             np.savez(cache / f"uniform_{n}_{tag}.npz", k=np.array(ks), E=np.array(sols[n]), seconds=np.array(times[n]))
     z = np.load(path)
+    timed = path.stat().st_mtime  # when the curve was timed: this run, or an earlier one whose cache was kept
     F = p["scene"].num_facets
     out = []
     for k, e, t in zip(z["k"], z["E"], z["seconds"], strict=True):
         rmse, mx = rel_errors(e, finer["best"])
-        out.append({"k": int(k), "facets": F * int(k) ** 2, "seconds": float(t), "rmse": rmse, "max": mx})
+        out.append({"k": int(k), "facets": F * int(k) ** 2, "seconds": float(t), "rmse": rmse, "max": mx,
+                    "timed": timed})
     return out
+
+
+def uniform_timing_note(results: dict, started: float) -> str:
+    """Where the uniform curves' times come from: this run (``started``: its start, epoch seconds), or the
+    cache of an earlier one, with its dates."""
+    when = [c.get("timed", math.nan) for r in results.values() for c in r.get("uniform", [])]
+    if when and all(math.isfinite(w) and w >= started - 1 for w in when):
+        return "timed in this run"
+    known = [w for w in when if math.isfinite(w)]
+    ends = (min(known), max(known)) if known else ()
+    dates = sorted({time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime(w)) for w in ends})
+    return (f"timed {' to '.join(dates) if dates else 'in an earlier run'} by an earlier run, read from its cache "
+            "`out/accuracy/uniform_*.npz` (delete it to time them again)")
 
 
 def cheapest_reaching(curve: Sequence[dict], target: float) -> tuple[float, str]:
@@ -379,7 +394,7 @@ def fmt_r(t: float, base: float) -> str:
 def scene_table(name: str, cases: list[dict], mit: list, ours_md: list, curve: list[dict]) -> list[str]:
     out = [
         "| requested | estimated | actual vs finer (max) | vs Mitsuba, debiased (raw) | leaves | time "
-        "| uniform at equal error (this run) | uniform reaching the request (this run) "
+        "| uniform at equal error | uniform reaching the request "
         "| ours k=1..4 at equal error (md) | Mitsuba at equal error | Mitsuba at the requested error | note |",
         "|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|",
     ]
@@ -436,7 +451,7 @@ def plot(results: dict, md_rows: dict, path: Path, title: str) -> None:
             ax.loglog([t for _, t in ours_md], [max(e, 1e-6) for e, _ in ours_md], "o:", ms=4, label="ours k=1..4 (md)")
         cv = res["uniform"]
         if cv:
-            ax.loglog([c["seconds"] for c in cv], [c["rmse"] for c in cv], "s--", ms=4, label="uniform k (this run)")
+            ax.loglog([c["seconds"] for c in cv], [c["rmse"] for c in cv], "s--", ms=4, label="uniform k")
         ok = [c for c in res["cases"] if "m" in c]
         if ok:
             ax.loglog([c["seconds"] for c in ok], [c["m"]["vs_finer"] for c in ok], "D-", ms=5, label="accuracy=")
@@ -531,7 +546,7 @@ def summary(results: dict) -> list[str]:
             f"| {r_mit / len(rest):.0%} |",
             f"| without the Cornell box: estimated ≥ actual | {r_est} / {len(rest)} | {r_est / len(rest):.0%} |",
         ]
-    # cost: adaptive against the cheapest uniform setting of this run that reaches the same error
+    # cost: adaptive against the cheapest uniform setting that reaches the same error
     for what, key in (("the same error as `render`", None), ("the requested accuracy", "accuracy")):
         ratios = []
         for n, c in ok:
@@ -542,8 +557,8 @@ def summary(results: dict) -> list[str]:
             g = statistics.geometric_mean(ratios)
             lines += [
                 "",
-                f"Adaptive time / time of the cheapest uniform `k` reaching {what} (this run, {len(ratios)} "
-                f"cases where a uniform `k` within the cap reached it): geometric mean {g:.2g}, "
+                f"Adaptive time / time of the cheapest uniform `k` reaching {what} (uniform times as above, "
+                f"{len(ratios)} cases where a uniform `k` within the cap reached it): geometric mean {g:.2g}, "
                 f"range {min(ratios):.2g}–{max(ratios):.2g}.",
             ]
     return lines
@@ -631,7 +646,7 @@ def run_group(names: Sequence[str], accs: Sequence[float], a: argparse.Namespace
     return out
 
 
-def write(results: dict, a: argparse.Namespace, suffix: str, wall: float) -> Path:
+def write(results: dict, a: argparse.Namespace, suffix: str, wall: float, started: float = math.nan) -> Path:
     md_rows = rows_from_markdown(RESULTS / "speed_vs_error.md") if (RESULTS / "speed_vs_error.md").exists() else {}
     md = [
         "# Accuracy as an input",
@@ -649,7 +664,8 @@ def write(results: dict, a: argparse.Namespace, suffix: str, wall: float) -> Pat
         f"in a forked child, limit {a.limit:.0f} s). *estimated* is `report.estimated`.",
         "",
         "Equal-error columns, at the *actual vs finer* error of the row: *uniform* is the cheapest uniform "
-        "`subdivide(k)` timed in this run (same threads; form-factor tol 1e-4, solver tol 1e-6; error against "
+        f"`subdivide(k)` {uniform_timing_note(results, started)} (same threads; form-factor tol 1e-4, solver "
+        "tol 1e-6; error against "
         "the same finer solution); *ours k=1..4 (md)* and *Mitsuba* are read off the rows of "
         "`speed_vs_error.md` (timed on 2 threads, errors against Mitsuba with its noise taken out; Mitsuba "
         "interpolated log-log on its time-against-error curve, `t ∝ e⁻²` below its smallest error). "
@@ -701,7 +717,7 @@ def write(results: dict, a: argparse.Namespace, suffix: str, wall: float) -> Pat
             "",
             *scene_table(name, r["cases"], mit, ours_md, r["uniform"]),
             "",
-            "Uniform refinement in this run: "
+            "Uniform refinement: "
             + ", ".join(f"k={c['k']} {fmt_e(c['rmse'])} in {fmt_t(c['seconds'])}" for c in r["uniform"])
             + ".",
         ]
@@ -765,13 +781,16 @@ def main(argv: Sequence[str] | None = None) -> None:
     accs = a.accuracies or (QUICK_ACC if a.quick else FULL_ACC)
     suffix = ("_quick" if a.quick else "") + ("_last_level" if a.last_level else "")
     t_start = time.perf_counter()
+    started = time.time()
     if a.from_json:
         saved = json.loads((CACHE / f"results{suffix}.json").read_text())
         if "results" not in saved:  # written by an older version of this script
             saved = {"results": saved, "wall": math.nan}
+        # a file from before "started" was stored: it was written at the end of its run
+        started = saved.get("started", (CACHE / f"results{suffix}.json").stat().st_mtime - saved["wall"])
         remeasure(saved["results"], a)
-        (CACHE / f"results{suffix}.json").write_text(json.dumps(_jsonable(saved)))
-        print(f"wrote {write(saved['results'], a, suffix, saved['wall'])}")
+        (CACHE / f"results{suffix}.json").write_text(json.dumps(_jsonable({**saved, "started": started})))
+        print(f"wrote {write(saved['results'], a, suffix, saved['wall'], started)}")
         return
 
     def log(msg: str) -> None:
@@ -788,8 +807,9 @@ def main(argv: Sequence[str] | None = None) -> None:
         results.update(run_group(group, accs, a, log))
         CACHE.mkdir(parents=True, exist_ok=True)
         wall = time.perf_counter() - t_start
-        (CACHE / f"results{suffix}.json").write_text(json.dumps(_jsonable({"results": results, "wall": wall})))
-    out = write(results, a, suffix, time.perf_counter() - t_start)
+        saved = {"results": results, "wall": wall, "started": started}
+        (CACHE / f"results{suffix}.json").write_text(json.dumps(_jsonable(saved)))
+    out = write(results, a, suffix, time.perf_counter() - t_start, started)
     log(f"wrote {out}")
 
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import time
 from pathlib import Path
 
 import numpy as np
@@ -108,6 +109,11 @@ def test_accuracy_benchmark_one_tiny_case(tmp_path: Path) -> None:
     t, label = ab.cheapest_reaching(curve, 1.0)
     assert label == "k=1" and t == curve[0]["seconds"]
     assert ab.cheapest_reaching(curve, 0.0)[1] == "not reached"
+    # the report says whether the uniform times are this run's or a cached earlier run's (with its date)
+    results = {"box_corner_sun_r2": {"uniform": curve}}
+    assert ab.uniform_timing_note(results, curve[0]["timed"] - 60) == "timed in this run"
+    note = ab.uniform_timing_note(results, curve[0]["timed"] + 3600)
+    assert "earlier run" in note and time.strftime("%Y-%m-%d", time.gmtime(curve[0]["timed"])) in note
 
 
 def test_accuracy_benchmark_reads_mitsuba_at_the_request() -> None:
