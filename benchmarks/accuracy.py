@@ -72,6 +72,8 @@ FULL_SCENES = [
 ]
 QUICK_SCENES = ["vgroove30_sun_r9", "box_corner_sun_r2", "w_shape_sun_r9"]
 FULL_ACC = [1e-2, 5e-3, 2e-3, 1e-3]
+#: Request of the untimed warm-up render of each case's scene in its child process.
+WARM_ACCURACY = 0.5
 QUICK_ACC = [1e-2, 3e-3]
 
 
@@ -240,6 +242,10 @@ def run_case(p: dict, accuracy: float, max_facets: int = 12_000, extrapolate: bo
 
 def _child(conn: Any, p: dict, accuracy: float, max_facets: int, extrapolate: bool) -> None:
     try:
+        # a forked child's first render pays 15-45 ms of cold start (measured on the dark scenes: 42-104 ms
+        # against 24-59 ms in the parent); one render of the same scene at a loose request warms it, as the
+        # uniform curve's best of two is warm
+        run_case(p, WARM_ACCURACY, max_facets, extrapolate)
         conn.send(run_case(p, accuracy, max_facets, extrapolate))
     except BaseException:  # report anything to the parent rather than dying silently
         conn.send({"error": traceback.format_exc()})
@@ -334,17 +340,20 @@ def uniform_curve(
     return out
 
 
-def uniform_timing_note(results: dict, started: float) -> str:
-    """Where the uniform curves' times come from: this run (``started``: its start, epoch seconds), or the
-    cache of an earlier one, with its dates."""
+def uniform_timing_note(results: dict, started: float, ended: float = math.inf) -> str:
+    """Where the uniform curves' times come from: the run that rendered (from ``started`` to ``ended``, epoch
+    seconds), or another one (a cache kept from an earlier run, or timed again by ``--from-json``), with dates."""
     when = [c.get("timed", math.nan) for r in results.values() for c in r.get("uniform", [])]
-    if when and all(math.isfinite(w) and w >= started - 1 for w in when):
+    inside = [math.isfinite(w) and started - 1 <= w <= ended + 1 for w in when]
+    if when and all(inside):
         return "timed in this run"
-    known = [w for w in when if math.isfinite(w)]
-    ends = (min(known), max(known)) if known else ()
-    dates = sorted({time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime(w)) for w in ends})
-    return (f"timed {' to '.join(dates) if dates else 'in an earlier run'} by an earlier run, read from its cache "
-            "`out/accuracy/uniform_*.npz` (delete it to time them again)")
+    other = [w for w, i in zip(when, inside, strict=True) if not i and math.isfinite(w)]
+    span = (min(other), max(other)) if other else ()
+    ends = sorted({time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime(w)) for w in span})
+    dated = f" on {' to '.join(ends)}" if ends else ""
+    part = "partly in this run, partly" if any(inside) else "not in this run but"
+    return (f"timed {part}{dated} (read from the cache `out/accuracy/uniform_*.npz`; delete it to time them "
+            "again)")
 
 
 def cheapest_reaching(curve: Sequence[dict], target: float) -> tuple[float, str]:
@@ -646,7 +655,8 @@ def run_group(names: Sequence[str], accs: Sequence[float], a: argparse.Namespace
     return out
 
 
-def write(results: dict, a: argparse.Namespace, suffix: str, wall: float, started: float = math.nan) -> Path:
+def write(results: dict, a: argparse.Namespace, suffix: str, wall: float, started: float = math.nan,
+          ended: float = math.inf) -> Path:
     md_rows = rows_from_markdown(RESULTS / "speed_vs_error.md") if (RESULTS / "speed_vs_error.md").exists() else {}
     md = [
         "# Accuracy as an input",
@@ -660,11 +670,12 @@ def write(results: dict, a: argparse.Namespace, suffix: str, wall: float, starte
         "irradiance: *actual vs finer* is against our own model solved much finer (uniform `subdivide(k)` with "
         f"`F k² ≤ {a.finer_facets}`, form-factor tol 1e-6, extrapolated with a fitted convergence order, see "
         "below); *vs Mitsuba* is against the cached Mitsuba 3 reference, with its noise taken out in quadrature "
-        "(raw in brackets). *time* is the wall time of the `render` call (after a warm-up render; each case "
-        f"in a forked child, limit {a.limit:.0f} s). *estimated* is `report.estimated`.",
+        "(raw in brackets). *time* is the wall time of the `render` call (each case in a forked child, after an "
+        f"untimed render of the same scene at accuracy={WARM_ACCURACY:g} there; limit {a.limit:.0f} s). "
+        "*estimated* is `report.estimated`.",
         "",
         "Equal-error columns, at the *actual vs finer* error of the row: *uniform* is the cheapest uniform "
-        f"`subdivide(k)` {uniform_timing_note(results, started)} (same threads; form-factor tol 1e-4, solver "
+        f"`subdivide(k)` {uniform_timing_note(results, started, ended)} (same threads; form-factor tol 1e-4, solver "
         "tol 1e-6; error against "
         "the same finer solution); *ours k=1..4 (md)* and *Mitsuba* are read off the rows of "
         "`speed_vs_error.md` (timed on 2 threads, errors against Mitsuba with its noise taken out; Mitsuba "
@@ -789,8 +800,9 @@ def main(argv: Sequence[str] | None = None) -> None:
         # a file from before "started" was stored: it was written at the end of its run
         started = saved.get("started", (CACHE / f"results{suffix}.json").stat().st_mtime - saved["wall"])
         remeasure(saved["results"], a)
-        (CACHE / f"results{suffix}.json").write_text(json.dumps(_jsonable({**saved, "started": started})))
-        print(f"wrote {write(saved['results'], a, suffix, saved['wall'], started)}")
+        kept = {**saved, "started": started} if math.isfinite(started) else saved
+        (CACHE / f"results{suffix}.json").write_text(json.dumps(_jsonable(kept)))
+        print(f"wrote {write(saved['results'], a, suffix, saved['wall'], started, started + saved['wall'])}")
         return
 
     def log(msg: str) -> None:
@@ -809,7 +821,7 @@ def main(argv: Sequence[str] | None = None) -> None:
         wall = time.perf_counter() - t_start
         saved = {"results": results, "wall": wall, "started": started}
         (CACHE / f"results{suffix}.json").write_text(json.dumps(_jsonable(saved)))
-    out = write(results, a, suffix, time.perf_counter() - t_start, started)
+    out = write(results, a, suffix, time.perf_counter() - t_start, started, time.time())
     log(f"wrote {out}")
 
 

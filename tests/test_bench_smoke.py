@@ -111,9 +111,15 @@ def test_accuracy_benchmark_one_tiny_case(tmp_path: Path) -> None:
     assert ab.cheapest_reaching(curve, 0.0)[1] == "not reached"
     # the report says whether the uniform times are this run's or a cached earlier run's (with its date)
     results = {"box_corner_sun_r2": {"uniform": curve}}
-    assert ab.uniform_timing_note(results, curve[0]["timed"] - 60) == "timed in this run"
-    note = ab.uniform_timing_note(results, curve[0]["timed"] + 3600)
-    assert "earlier run" in note and time.strftime("%Y-%m-%d", time.gmtime(curve[0]["timed"])) in note
+    t = curve[0]["timed"]
+    assert ab.uniform_timing_note(results, t - 60, t + 60) == "timed in this run"
+    for started, ended in ((t + 3600, t + 7200), (t - 7200, t - 3600)):  # a cache from before, or timed after
+        note = ab.uniform_timing_note(results, started, ended)
+        assert note.startswith("timed not in this run but on " + time.strftime("%Y-%m-%d", time.gmtime(t)))
+    mixed = {"a": {"uniform": curve}, "b": {"uniform": [{**curve[0], "timed": t - 7200}]}}
+    assert ab.uniform_timing_note(mixed, t - 60, t + 60).startswith("timed partly in this run, partly on")
+    undated = {"a": {"uniform": [{**curve[0], "timed": math.nan}]}}
+    assert ab.uniform_timing_note(undated, t - 60, t + 60).startswith("timed not in this run but (read from")
 
 
 def test_accuracy_benchmark_reads_mitsuba_at_the_request() -> None:

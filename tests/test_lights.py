@@ -180,6 +180,8 @@ def test_sky_on_some_facets_equals_those_rows_of_the_full_call():
         ti.lights.sky(box, K, spd, facets=torch.tensor([24]))
     with pytest.raises(ShapeError, match="integer tensor"):
         ti.lights.sky(box, K, spd, facets=torch.tensor([0.5]))
+    with pytest.raises(ShapeError, match="integer tensor"):  # a mask is not indices
+        ti.lights.sky(box, K, spd, facets=torch.zeros(24, dtype=torch.bool))
 
 
 @pytest.mark.parametrize("kw", [dict(sky_samples=0), dict(sky_samples=2.5), dict(sky_samples=True)])

@@ -10,10 +10,19 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from .errors import DeviceError, ValueRangeError
+from .errors import DeviceError, ShapeError, ValueRangeError
 
-__all__ = ["as_float_tensor", "as_real_tensor", "check_count", "check_finite", "check_nonnegative", "check_reflectance",
-           "check_same_device", "describe_index"]
+__all__ = [
+    "as_float_tensor",
+    "as_real_tensor",
+    "check_count",
+    "check_finite",
+    "check_indices",
+    "check_nonnegative",
+    "check_reflectance",
+    "check_same_device",
+    "describe_index",
+]
 
 
 def check_count(value: Any, name: str, *, minimum: int = 1, optional: bool = False, note: str = "") -> int | None:
@@ -118,3 +127,16 @@ def check_same_device(device: torch.device, owner: str, **tensors: Tensor) -> No
                 f"{name} is on {t.device}; expected {device}, the device of {owner} (nothing is moved between "
                 f"devices silently): move one of them, e.g. {name}.to({str(device)!r})"
             )
+
+
+def check_indices(idx: Any, size: int, name: str) -> Tensor:
+    """``idx`` as int64 indices ``[k]`` in ``[0, size)`` on the CPU; :class:`ShapeError` for anything but a 1-D
+    integer tensor (a bool mask included), :class:`ValueRangeError` for an index out of range."""
+    if (not isinstance(idx, Tensor) or idx.ndim != 1 or idx.dtype == torch.bool or idx.is_floating_point()
+            or idx.is_complex()):
+        got = f"{idx.dtype} {list(idx.shape)}" if isinstance(idx, Tensor) else type(idx).__name__
+        raise ShapeError(f"{name} must be an integer tensor [k] of indices; got {got}")
+    out = idx.detach().to("cpu", torch.int64)
+    if out.numel() and (int(out.min()) < 0 or int(out.max()) >= size):
+        raise ValueRangeError(f"{name} must lie in [0, {size}); got [{int(out.min())}, {int(out.max())}]")
+    return out

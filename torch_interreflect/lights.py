@@ -41,7 +41,7 @@ from typing import Literal
 import torch
 from torch import Tensor
 
-from ._checks import check_count
+from ._checks import check_count, check_indices
 from ._deprecation import renamed_keywords
 from .errors import ShapeError, ValueRangeError
 from .formfactors.hemisphere import hemisphere_fractions
@@ -316,7 +316,7 @@ def sky(
         raise ValueError(f"backfaces must be 'auto', True or False; got {backfaces!r}")
     check_count(sky_samples, "sky_samples")
     F = scene.num_facets
-    rows = _facet_rows(facets, F)
+    rows = None if facets is None else check_indices(facets, F, "facets")
     open_part = 1.0 - form_factors.row_sums().to(torch.float64).cpu()  # keeps the gradient of F (module docstring)
     open_part = open_part if rows is None else open_part[rows]
     if backfaces is not False:
@@ -344,19 +344,6 @@ def sky(
                 sc, ids[back_pos], samples=sky_samples, points=8, escape=False, caster=caster)[1]
     open_part = open_part.clamp_min(0).to(spd.dtype).to(spd.device)
     return math.pi * open_part[:, None] * spd[..., None, :]
-
-
-def _facet_rows(facets: Tensor | None, F: int) -> Tensor | None:
-    """``facets`` checked: int64 ``[k]`` indices in ``[0, F)`` on the CPU (``None`` passes through)."""
-    if facets is None:
-        return None
-    if not isinstance(facets, Tensor) or facets.ndim != 1 or facets.is_floating_point() or facets.is_complex():
-        got = f"{facets.dtype} {list(facets.shape)}" if isinstance(facets, Tensor) else type(facets).__name__
-        raise ShapeError(f"facets must be an integer tensor [k] of facet indices; got {got}")
-    rows = facets.detach().to("cpu", torch.int64)
-    if rows.numel() and (int(rows.min()) < 0 or int(rows.max()) >= F):
-        raise ValueRangeError(f"facets must lie in [0, {F}); got [{int(rows.min())}, {int(rows.max())}]")
-    return rows
 
 
 @renamed_keywords(samples="sky_samples")

@@ -321,8 +321,8 @@ def _uniform_reference(scene: ti.Scene, r: float, light, ks=(6, 12)) -> torch.Te
 def test_a_priori_estimate_bounds_the_error_of_one_solve(groove, r, light):
     """``accuracy.apriori.estimate`` (the corners gathered, the sources of the error from their covariance with the
     point form factors) against the actual error of the solve on the user's facets: estimated / actual RMS
-    2.66 / 2.04 / 2.38 / 1.76 (the sky: the corners' light from their open hemisphere), 6 or 8 of the 8 facets
-    below their estimate, the worst at 1.10 times it."""
+    2.41 / 1.90 / 2.19 / 1.63 (the sky: the corners' light from their open hemisphere), every facet below its
+    estimate (the closest at 0.63 of it)."""
     from torch_interreflect.accuracy import apriori
 
     light = light if isinstance(light, str) else torch.tensor(light, dtype=D)
@@ -335,8 +335,31 @@ def test_a_priori_estimate_bounds_the_error_of_one_solve(groove, r, light):
     actual = ((h[:, 0] - ref) / ref).abs()
     assert est.shape == (groove.num_facets,) and est.dtype == torch.float64
     rms_actual, rms_est = float(actual.square().mean().sqrt()), float(est.square().mean().sqrt())
-    assert rms_actual <= rms_est <= 4 * rms_actual
-    assert float((actual <= est).double().mean()) >= 0.75 and bool((actual <= 1.25 * est).all())
+    assert rms_actual <= rms_est <= 3.5 * rms_actual
+    assert bool((actual <= est).all())
+
+
+def test_a_priori_estimate_does_not_depend_on_the_facet_order():
+    """A wall standing on the line between two floor facets, in sun: the floor's corners at the wall's foot are not
+    shared across it (each side has its own light), so the estimate follows the facets when they are reordered."""
+    from torch_interreflect.accuracy import apriori
+
+    a = [[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]]
+    b = [[1, 0, 0], [2, 0, 0], [2, 1, 0], [1, 1, 0]]
+    c = [[2, 0, 0], [3, 0, 0], [3, 1, 0], [2, 1, 0]]
+    wall = [[1, 1, 0], [1, 0, 0], [1, 0, 1], [1, 1, 1]]  # x = 1, facing -x
+    sun = torch.tensor([1.0, 0.0, -2.0], dtype=D)
+    est = []
+    for order in ([0, 1, 2, 3], [1, 0, 3, 2]):
+        scene = ti.Scene.from_polygons(torch.tensor([[a, b, c, wall][i] for i in order], dtype=D))
+        K = ti.form_factors(scene)
+        g = ti.lights.light_geometry(scene, K, sun)
+        r = torch.full((4, 1), 0.8, dtype=D)
+        h = ti.solve(K, r, g[:, None], method="dense")
+        e = apriori.estimate(scene, K, r, g, h, sun)
+        est.append(torch.empty_like(e).index_copy_(0, torch.tensor(order), e))
+    torch.testing.assert_close(est[0], est[1], rtol=1e-9, atol=0)
+    assert float(est[0][0]) > 0 and float(est[0][3]) > 0
 
 
 def test_a_priori_estimate_in_small_blocks(groove, monkeypatch):

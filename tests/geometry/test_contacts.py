@@ -72,7 +72,7 @@ def test_splitting_removes_the_hidden_area_bias():
 def test_segments_inside_along_and_outside_a_facet():
     """Cyrus–Beck on a unit square (z = 0), all segments at once: through the interior, along or touching its
     boundary, outside, partly inside, degenerate; and on a triangle (repeated fourth corner)."""
-    from torch_interreflect.geometry.contacts import _through_interior
+    from torch_interreflect.geometry.contacts import through_interior
 
     sq = torch.tensor([[0.0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]], dtype=torch.float64)
     tri = torch.tensor([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 1, 0]], dtype=torch.float64)
@@ -93,20 +93,21 @@ def test_segments_inside_along_and_outside_a_facet():
     poly = torch.stack([c[0] for c in cases])
     a, b = (torch.tensor([c[k] for c in cases], dtype=torch.float64) for k in (1, 2))
     normal = torch.tensor([[0.0, 0.0, 1.0]], dtype=torch.float64).expand(len(cases), 3)
-    got = _through_interior(poly, normal, a, b, 1e-9)
+    got = through_interior(poly, normal, a, b, 1e-9)
     assert got.tolist() == [c[3] for c in cases]
-    none = _through_interior(poly[:0], normal[:0], a[:0], b[:0], 1e-9)
+    none = through_interior(poly[:0], normal[:0], a[:0], b[:0], 1e-9)
     assert none.shape == (0,) and none.dtype == torch.bool
 
 
 def _all_triplets(scene):
     """The contact test on every (facet, edge of another facet) triplet: the ``O(F²)`` reference of the plane
     prefilter (same conditions, no candidates dropped)."""
-    from torch_interreflect.geometry._polygon import plane_eps
-    from torch_interreflect.geometry.contacts import _through_interior
+    from torch_interreflect.geometry.contacts import through_interior
 
     sc = scene.to(torch.float64)
-    c, n, eps = sc.corners, sc.normals, plane_eps(scene)
+    flat = scene.corners.double().reshape(-1, 3)
+    eps = float((flat.max(0).values - flat.min(0).values).norm()) * max(1e-9, 16 * torch.finfo(scene.dtype).eps)
+    c, n = sc.corners, sc.normals
     F = sc.num_facets
     i, j, k = (t.reshape(-1) for t in torch.meshgrid(torch.arange(F), torch.arange(F), torch.arange(4), indexing="ij"))
     a, b = c[j, k], torch.roll(c, -1, dims=1)[j, k]
@@ -116,7 +117,7 @@ def _all_triplets(scene):
     lo, hi = c[i].min(1).values, c[i].max(1).values
     keep &= ((torch.minimum(a, b) <= hi + eps) & (torch.maximum(a, b) >= lo - eps)).all(-1)
     i, j, a, b = i[keep], j[keep], a[keep], b[keep]
-    hit = _through_interior(c[i], n[i], a, b, eps)
+    hit = through_interior(c[i], n[i], a, b, eps)
     return sorted(set(zip(i[hit].tolist(), j[hit].tolist(), strict=True)))
 
 
@@ -138,6 +139,18 @@ def test_plane_prefilter_finds_every_contact(dtype):
         assert pairs == _all_triplets(scene)
         found += len(pairs)
     assert found > 100  # the scenes have contacts to find
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("tilt", [5e-5, 8e-5, 3e-4])
+def test_a_slightly_tilted_facet_lying_on_another_is_a_contact(dtype, tilt):
+    """A sliver tilted by ``tilt`` rad with one edge across a floor's interior: not coplanar by the exact test
+    (``|n_i·n_j| ≤ 1 − 1e-9``), though in float32 it falls in the floor's plane group (normals rounded to ~2e-4)."""
+    floor = [[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]]
+    dz = 0.1 * tilt
+    sliver = [[0.2, 0.5, 0], [0.8, 0.5, 0], [0.8, 0.6, dz], [0.2, 0.6, dz]]
+    scene = ti.Scene.from_polygons(torch.tensor([floor, sliver], dtype=dtype))
+    assert contact_pairs(scene) == _all_triplets(scene) == [(0, 1)]
 
 
 def test_candidates_in_small_runs(monkeypatch):

@@ -5,23 +5,23 @@ true radiosity and ``F(y → i)`` the form factor from a point ``y`` of ``j`` to
 obey exactly ``(I − F R) Ē = E0 + local`` with ``local_i = Σ_j (A_j / A_i) cov_{y ∈ j}(F(y → i), B(y))``, so the
 error of the solved averages is ``e = (I − F R)⁻¹ local``: second order, the product of how much the kernel and
 the radiosity vary over each source facet. :func:`estimate` evaluates ``E`` at the corners of every facet (nudged
-inside; one point per vertex and plane) by one exact gather from the solved facets (Lambert's point-to-polygon
-formula with occlusion, :func:`torch_interreflect.camera.point_form_factors`, which also gives ``F(y → i)`` at the
-corners, and the light at the point), takes each covariance over the four corners, sums their magnitudes (no
-cancellation between sources is counted on) and solves once more with the same form factors.
+inside; one point per vertex where a single plane meets, one per facet elsewhere) by one exact gather from the
+solved facets (Lambert's point-to-polygon formula with occlusion, :func:`torch_interreflect.camera.point_form_factors`,
+which also gives ``F(y → i)`` at the corners, and the light at the point), takes each covariance over the four
+corners, sums their magnitudes (no cancellation between sources is counted on) and solves once more with the same
+form factors.
 
 A source facet whose own rows rest on ray-cast visibility (a partly hidden floor under a sky) can vary inside in
 ways its corners miss: it contributes :data:`OSC_SHARE` of the bound ``F_ij r_j osc_j`` (``osc_j`` the largest
 deviation at its corners) instead.
 
 Against extrapolated fine solutions (the accuracy benchmark's scenes: V-grooves at 30° and 45°, a box corner, a W
-shape under a sun, r = 0.2 and 0.9, 48 to 200 facets) the RMS estimate is 3.0–4.2× the actual RMS error, and at
-least the actual error on 80–100 % of the facets (the bound ``(I − F R)⁻¹ F R osc`` used before: 11–20× the RMS
-error, so the planner refined where one solve already met the request). The Cornell box under a sky (all its
-sources occluded) keeps the bound: 4.0× (r = 0.9) and 1.7× (r = 0.2). The corners' covariance is about three
-times the area covariance where both vary linearly, which is the margin. It costs one gather of one point per
-vertex and plane (``F`` to ``4 F`` points: about a level-0 kernel), against the ``16×`` larger kernel of a
-forced first split.
+shape under a sun, r = 0.2 and 0.9, 48 to 200 facets) the RMS estimate is 3.4–4.8× the actual RMS error, and at
+least the actual error on 95–100 % of the facets (half the bound ``(I − F R)⁻¹ F R osc``, the estimate used before:
+5.4–9.8× the RMS error, so the planner refined where one solve already met the request). The Cornell box under a
+sky (all its sources occluded) keeps that: 4.0× (r = 0.9) and 1.7× (r = 0.2). The corners' covariance is about
+three times the area covariance where both vary linearly, which is the margin. It costs one gather of ``F`` to
+``4 F`` points (about a level-0 kernel), against the ``16×`` larger kernel of a forced first split.
 """
 
 from __future__ import annotations
@@ -52,9 +52,10 @@ GATHER_SAMPLES = 3
 
 
 def _corner_points(scene: Scene) -> tuple[Tensor, Tensor, Tensor]:
-    """One point per distinct corner of every plane: facets of one plane that share a vertex (a grid's) share its
-    point, a hinge's vertex has one per side. Each point is its first facet's corner moved ``1e-6`` of the way
-    toward that facet's centroid (off the neighbours' edges).
+    """One point per vertex that a single plane touches (a grid's facets share their corners); a vertex where
+    facets of several planes meet (a hinge, the foot of a wall on a floor) has one point per facet, since the
+    light on either side of a facet standing there differs. Each point is its first facet's corner moved ``1e-6``
+    of the way toward that facet's centroid (off the neighbours' edges).
 
     Shape: ``points [P, 3]`` (float64, CPU), ``facet [P]`` (the facet it was nudged into), ``index [F, 4]``
     (the point of each facet's corner; a triangle's repeated corner is its third).
@@ -66,10 +67,14 @@ def _corner_points(scene: Scene) -> tuple[Tensor, Tensor, Tensor]:
     size = float((flat.max(0).values - flat.min(0).values).norm()) if F else 1.0
     eps = plane_eps(scene)
     plane = plane_ids(sc, eps) if F else torch.zeros(0, dtype=torch.int64)
-    # corners within ~eps of each other on one plane are one point (a grid's shared vertices may differ in the
-    # last bits); a boundary between two rounding cells only keeps two points
-    key = torch.cat([plane.repeat_interleave(4)[:, None].double(), torch.round(flat / max(eps, 1e-12 * size))], 1)
-    _, index = torch.unique(key, dim=0, return_inverse=True)
+    # corners within ~eps of each other are one vertex (a grid's shared vertices may differ in the last bits; a
+    # boundary between two rounding cells only keeps two points)
+    pos = torch.round(flat / max(eps, 1e-12 * size))
+    vertex = torch.unique(pos, dim=0, return_inverse=True)[1] if F else torch.zeros(0, dtype=torch.int64)
+    pairs = torch.unique(torch.stack([vertex, plane.repeat_interleave(4)], 1), dim=0)  # (vertex, plane), distinct
+    planes_at = torch.bincount(pairs[:, 0], minlength=int(vertex.max()) + 1 if F else 0)
+    owner = torch.where(planes_at[vertex] == 1, plane.repeat_interleave(4), -1 - torch.arange(F).repeat_interleave(4))
+    _, index = torch.unique(torch.stack([owner, vertex], 1), dim=0, return_inverse=True)
     P = int(index.max()) + 1 if F else 0
     slot = torch.full((P,), 4 * F, dtype=torch.int64).scatter_reduce_(0, index, torch.arange(4 * F), "amin")
     facet = slot // 4

@@ -114,23 +114,23 @@ SKY_SAMPLES, SKY_CHECK_SAMPLES = 16, 24
 
 
 def light_factor(light: Any, scene: Scene, K: FormFactors, user: Tensor, num_user: int,
-                 kept: Tensor | None = None) -> Tensor:
+                 kept_g: Tensor | None = None) -> Tensor:
     """Geometric factor ``g [n]`` of the light on the leaves: ``E0 = g ⊗ spectrum``.
 
-    ``kept``: the factors ``[m]`` of the first ``m`` leaves, kept unchanged from a previous step (:func:`split`).
+    ``kept_g``: the factors ``[m]`` of the first ``m`` leaves, kept unchanged from a previous step (:func:`split`).
     Under the sky, those whose value is a count of escaping rays (leaves with occluded pairs) keep it: it depends
     on the leaf and the scene alone, and casting again would draw other rays (and change the value by its noise).
     """
     if isinstance(light, str) and light == "sky":
         one = torch.ones(1, dtype=scene.dtype, device=scene.device)
         occ = K.info.get("occluded_facets")
-        if kept is None or occ is None or not bool(occ[: kept.numel()].any()):
+        if kept_g is None or occ is None or not bool(occ[: kept_g.numel()].any()):
             return lights.sky(scene, K, one, sky_samples=SKY_SAMPLES)[:, 0]
         keep = torch.zeros(scene.num_facets, dtype=torch.bool)
-        keep[: kept.numel()] = occ[: kept.numel()].cpu()
+        keep[: kept_g.numel()] = occ[: kept_g.numel()].cpu()
         fresh = torch.nonzero(~keep).reshape(-1)
         g = torch.empty(scene.num_facets, dtype=scene.dtype, device=scene.device)
-        g[keep.to(g.device)] = kept.to(g)[keep[: kept.numel()].to(g.device)]
+        g[keep.to(g.device)] = kept_g.to(g)[keep[: kept_g.numel()].to(g.device)]
         g[fresh.to(g.device)] = lights.sky(scene, K, one, sky_samples=SKY_SAMPLES, facets=fresh)[:, 0]
         return g
     if isinstance(light, Tensor) and light.ndim == 1 and light.shape[0] == num_user and num_user != 3:

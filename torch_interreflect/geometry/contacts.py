@@ -17,7 +17,7 @@ from torch import Tensor
 from ._polygon import plane_eps, plane_ids
 from .scene import Scene
 
-__all__ = ["PAIR_CHUNK", "contact_pairs", "split_at_contacts"]
+__all__ = ["PAIR_CHUNK", "contact_pairs", "split_at_contacts", "through_interior"]
 
 #: Largest number of (facet, candidate edge) triplets tested at once.
 PAIR_CHUNK = 1 << 20
@@ -62,8 +62,11 @@ def contact_pairs(scene: Scene) -> list[tuple[int, int]]:
         g = torch.arange(s, min(s + chunk, len(first)))
         da = torch.einsum("gx,fkx->gfk", pn[g], corners) - po[g][:, None, None]  # [g, F, 4]
         db = torch.einsum("gx,fkx->gfk", pn[g], nxt) - po[g][:, None, None]
-        # coplanar with every member: the group's own facets, or (by the bound on the members' normals) parallel
-        surely_coplanar = ((normals @ pn[g].T).T.abs() - dn[g][:, None] > 1 - 1e-9) | (group[None, :] == g[:, None])
+        # coplanar with every member (the exact test: |n_i·n_j| > 1 − 1e-9): parallel by the bound on the members'
+        # normals, or the group's own facets when any two members' normals are within 2 dn of each other with
+        # 1 − (2 dn)²/2 > 1 − 1e-9 (a float32 group can hold facets tilted further: those go to the exact test)
+        own = (group[None, :] == g[:, None]) & (2.0 * dn[g] ** 2 < 1e-9)[:, None]
+        surely_coplanar = ((normals @ pn[g].T).T.abs() - dn[g][:, None] > 1 - 1e-9) | own
         near = (da.abs() <= slack[g][:, None, None]) & (db.abs() <= slack[g][:, None, None])
         gi, fj, k = torch.nonzero(near & ~surely_coplanar[..., None]).unbind(1)
         gi = g[gi]
@@ -101,7 +104,7 @@ def _exact(corners: Tensor, nxt: Tensor, normals: Tensor, offs: Tensor, i: Tenso
     lo, hi = corners[i].min(1).values, corners[i].max(1).values
     keep &= ((torch.minimum(a, b) <= hi + eps) & (torch.maximum(a, b) >= lo - eps)).all(-1)
     i, fj, a, b = i[keep], fj[keep], a[keep], b[keep]
-    hit = _through_interior(corners[i], normals[i], a, b, eps)
+    hit = through_interior(corners[i], normals[i], a, b, eps)
     return list(zip(i[hit].tolist(), fj[hit].tolist(), strict=True))
 
 
@@ -154,7 +157,7 @@ def split_at_contacts(scene: Scene) -> tuple[Scene, Tensor]:
     return Scene.from_parts(c, torch.as_tensor(out_tri, device=scene.device), mat, scene.material_names), parent_t
 
 
-def _through_interior(poly: Tensor, normal: Tensor, a: Tensor, b: Tensor, eps: float) -> Tensor:
+def through_interior(poly: Tensor, normal: Tensor, a: Tensor, b: Tensor, eps: float) -> Tensor:
     """Whether each segment ``a → b`` (in its polygon's plane) has a part of positive length strictly inside the
     convex polygon (Cyrus–Beck clipping against its edges' inward half-planes), for all segments at once.
 
