@@ -161,9 +161,7 @@ def sun_shadow_gradient(scene: Scene, direction: Tensor, facets: Tensor, *, edge
     facets = torch.as_tensor(facets)
     if facets.ndim != 1 or facets.dtype != torch.int64:
         raise ShapeError(f"facets must be int64 facet indices [K]; got shape {list(facets.shape)} ({facets.dtype})")
-    if facets.numel() and not (int(facets.min()) >= 0 and int(facets.max()) < scene.num_facets):
-        raise ValueRangeError(f"facets must lie in [0, {scene.num_facets}); got {int(facets.min())} to "
-                              f"{int(facets.max())}")
+    facets = check_indices(facets, scene.num_facets, "facets")
     sc = scene.to(torch.float64).to("cpu")
     corners, normals_g = sc.corners, sc.normals
     cd, normals = corners.detach(), normals_g.detach()
@@ -294,7 +292,7 @@ def sky(
             facet, both with low-discrepancy offsets:
             :func:`~torch_interreflect.formfactors.hemisphere.hemisphere_fractions`) for the ray-cast parts (``b``,
             and the open part of facets with occluded pairs; formerly ``samples``).
-        facets: Only these facets' rows (int64 ``[k]``, e.g. the new facets of a refined mesh whose other values
+        facets: Only these facets' rows (integer ``[k]``, e.g. the new facets of a refined mesh whose other values
             are known): rays are cast from them alone, with the same values as in the full call.
 
     Shape:

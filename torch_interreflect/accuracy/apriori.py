@@ -34,7 +34,7 @@ from torch import Tensor
 
 from ..camera.point_kernel import point_form_factors
 from ..formfactors.operator import FormFactors
-from ..geometry._polygon import plane_eps, plane_ids
+from ..geometry._polygon import plane_eps, plane_ids, scene_size
 from ..geometry.raycast import RayCaster
 from ..geometry.scene import Scene
 from ..solver.api import solve
@@ -51,44 +51,40 @@ COV_BLOCK = 1 << 22
 GATHER_SAMPLES = 3
 
 
-def _corner_points(scene: Scene) -> tuple[Tensor, Tensor, Tensor]:
+def _corner_points(sc: Scene, eps: float) -> tuple[Tensor, Tensor, Tensor]:
     """One point per vertex that a single plane touches (a grid's facets share their corners); a vertex where
     facets of several planes meet (a hinge, the foot of a wall on a floor) has one point per facet, since the
     light on either side of a facet standing there differs. Each point is its first facet's corner moved ``1e-6``
     of the way toward that facet's centroid (off the neighbours' edges).
 
+    ``sc``: the scene in float64 on the CPU; ``eps``: :func:`plane_eps` of the scene in its own dtype.
+
     Shape: ``points [P, 3]`` (float64, CPU), ``facet [P]`` (the facet it was nudged into), ``index [F, 4]``
     (the point of each facet's corner; a triangle's repeated corner is its third).
     """
-    sc = scene.to(torch.float64).to("cpu")
-    corners = sc.corners.detach()
     F = sc.num_facets
-    flat = corners.reshape(-1, 3)
-    size = float((flat.max(0).values - flat.min(0).values).norm()) if F else 1.0
-    eps = plane_eps(scene)
-    plane = plane_ids(sc, eps) if F else torch.zeros(0, dtype=torch.int64)
+    flat = sc.corners.detach().reshape(-1, 3)
+    plane = plane_ids(sc, eps).repeat_interleave(4)  # of each corner slot
     # corners within ~eps of each other are one vertex (a grid's shared vertices may differ in the last bits; a
     # boundary between two rounding cells only keeps two points)
-    pos = torch.round(flat / max(eps, 1e-12 * size))
-    vertex = torch.unique(pos, dim=0, return_inverse=True)[1] if F else torch.zeros(0, dtype=torch.int64)
-    pairs = torch.unique(torch.stack([vertex, plane.repeat_interleave(4)], 1), dim=0)  # (vertex, plane), distinct
-    planes_at = torch.bincount(pairs[:, 0], minlength=int(vertex.max()) + 1 if F else 0)
-    owner = torch.where(planes_at[vertex] == 1, plane.repeat_interleave(4), -1 - torch.arange(F).repeat_interleave(4))
+    pos = torch.round(flat / max(eps, 1e-12 * scene_size(sc)))
+    vertex = torch.unique(pos, dim=0, return_inverse=True)[1]
+    planes_at = torch.bincount(torch.unique(torch.stack([vertex, plane], 1), dim=0)[:, 0])  # distinct planes
+    owner = torch.where(planes_at[vertex] == 1, plane, -1 - torch.arange(F).repeat_interleave(4))
     _, index = torch.unique(torch.stack([owner, vertex], 1), dim=0, return_inverse=True)
-    P = int(index.max()) + 1 if F else 0
+    P = int(index.max()) + 1
     slot = torch.full((P,), 4 * F, dtype=torch.int64).scatter_reduce_(0, index, torch.arange(4 * F), "amin")
     facet = slot // 4
     x = flat[slot] + 1e-6 * (sc.centroids.detach()[facet] - flat[slot])
     return x, facet, index.reshape(F, 4)
 
 
-def _direct_at(light: Any, scene: Scene, x: Tensor, facet: Tensor, index: Tensor, factors: Tensor, covered: Tensor,
+def _direct_at(light: Any, sc: Scene, x: Tensor, facet: Tensor, index: Tensor, factors: Tensor, covered: Tensor,
                g: Tensor, caster: RayCaster) -> Tensor:
     """The light's geometric factor at every facet's corners ``[F, 4]`` (float64), from the points ``x [P]`` they
     map to by ``index``: the sky from the open part of each point's hemisphere, a sun by one shadow ray per point,
     an area light through the point form factors; a factor given per facet (or anything else) is taken as
-    constant over the facet."""
-    sc = scene.to(torch.float64).to("cpu")
+    constant over the facet (``sc``: the scene in float64 on the CPU)."""
     g64 = g.detach().to(torch.float64).cpu()
     if isinstance(light, str) and light == "sky":
         return (math.pi * (1.0 - covered).clamp_min(0.0))[index]
@@ -162,11 +158,11 @@ def estimate(scene: Scene, K: FormFactors, refl: Tensor, g: Tensor, h: Tensor, l
         Estimated relative error per facet, the largest over the columns (float64, CPU). Shape ``[n]``.
     """
     n = scene.num_facets
-    x, facet, index = _corner_points(scene)
     sc = scene.to(torch.float64).to("cpu")
+    x, facet, index = _corner_points(sc, plane_eps(scene))
     caster = RayCaster(sc)
     factors, covered, _ = point_form_factors(scene, x, facet, samples=GATHER_SAMPLES, caster=caster)
-    e0 = _direct_at(light, scene, x, facet, index, factors, covered, g, caster)  # [n, 4]
+    e0 = _direct_at(light, sc, x, facet, index, factors, covered, g, caster)  # [n, 4]
     h64 = h.detach().to(torch.float64).cpu()
     r64 = refl.detach().to(torch.float64).cpu().expand_as(h64)
     rh = (r64 * h64).movedim(-2, 0)  # [n, ..., C]

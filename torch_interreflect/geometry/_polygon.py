@@ -23,11 +23,13 @@ __all__ = [
     "facing_any",
     "facing_matrix",
     "facing_others",
+    "group_firsts",
     "plane_eps",
     "plane_groups",
     "plane_ids",
     "quad_coordinates",
     "rotate_to_plane_edge",
+    "scene_size",
     "signed_distances",
     "tangent_frame",
 ]
@@ -178,11 +180,24 @@ def facing_any(scene: Scene, *, one_way: bool = False, chunk: int | None = None)
     return out
 
 
+def scene_size(scene: Scene) -> float:
+    """Diagonal (m) of the bounding box of the scene's corners, in float64 (0 without facets)."""
+    c = scene.corners.detach().reshape(-1, 3).double()
+    return float((c.max(0).values - c.min(0).values).norm()) if c.numel() else 0.0
+
+
 def plane_eps(scene: Scene) -> float:
     """Distance (m) under which a point counts as on a plane: float noise of the scene's own dtype."""
-    c = scene.corners.detach().reshape(-1, 3).double()
-    size = float((c.max(0).values - c.min(0).values).norm())
-    return size * max(1e-9, 16.0 * torch.finfo(scene.dtype).eps)
+    return scene_size(scene) * max(1e-9, 16.0 * torch.finfo(scene.dtype).eps)
+
+
+def group_firsts(group: Tensor) -> Tensor:
+    """The first (lowest) index in each group of ``group [F]`` (ids ``0..G-1``, e.g. :func:`plane_ids`). Shape
+    ``[G]``."""
+    G = int(group.max()) + 1 if group.numel() else 0
+    return torch.full((G,), group.numel(), dtype=torch.int64).scatter_reduce_(
+        0, group, torch.arange(group.numel()), "amin"
+    )
 
 
 def plane_ids(sc: Scene, eps: float) -> Tensor:
@@ -193,7 +208,7 @@ def plane_ids(sc: Scene, eps: float) -> Tensor:
     """
     corners, normals = sc.corners.detach(), sc.normals.detach()
     offs = (normals * sc.centroids.detach()).sum(-1)
-    size = float((corners.reshape(-1, 3).max(0).values - corners.reshape(-1, 3).min(0).values).norm())
+    size = float((corners.reshape(-1, 3).max(0).values - corners.reshape(-1, 3).min(0).values).norm())  # own dtype
     res = max(1e-6, 100.0 * eps / max(size, 1e-300))
     key = torch.round(torch.cat([normals, offs[:, None] / max(size, 1e-300)], dim=1) / res)
     return torch.unique(key, dim=0, return_inverse=True)[1]
@@ -217,9 +232,7 @@ def plane_groups(sc: Scene, eps: float, frames: bool = False) -> tuple[Tensor, .
     idx3 = plane_of[:, None].expand(-1, 3)
     plo = torch.full((n_planes, 3), math.inf, dtype=lo.dtype).scatter_reduce_(0, idx3, lo, "amin")
     phi = torch.full((n_planes, 3), -math.inf, dtype=hi.dtype).scatter_reduce_(0, idx3, hi, "amax")
-    first = torch.full((n_planes,), len(plane_of), dtype=torch.int64).scatter_reduce_(
-        0, plane_of, torch.arange(len(plane_of)), "amin"
-    )
+    first = group_firsts(plane_of)
     pn, po = normals[first], offs[first]
     # a plane can only separate two facets if some corner of the scene lies strictly on each side of it
     dall = corners.reshape(-1, 3) @ pn.T - po[None, :]

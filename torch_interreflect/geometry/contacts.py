@@ -14,7 +14,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ._polygon import plane_eps, plane_ids
+from ._polygon import group_firsts, plane_eps, plane_ids, scene_size
 from .scene import Scene
 
 __all__ = ["PAIR_CHUNK", "contact_pairs", "split_at_contacts", "through_interior"]
@@ -43,12 +43,12 @@ def contact_pairs(scene: Scene) -> list[tuple[int, int]]:
         return []
     nxt = torch.roll(corners, -1, dims=1)  # edges: corner k → k + 1 (a triangle's repeated corner: length 0)
     offs = (normals * corners[:, 0]).sum(-1)
-    group, first = _groups(sc, eps)
+    group = plane_ids(sc, eps)
+    first = group_firsts(group)
     pn, po = normals[first], offs[first]
     # a member's distance n_i·(x − c_i0) differs from its group's n_g·x − o_g by at most |n_i − n_g| |x − c_i0|
     # plus the group's distance at c_i0
-    flat = corners.reshape(-1, 3)
-    size = float((flat.max(0).values - flat.min(0).values).norm())
+    size = scene_size(sc)
     dn = torch.zeros(len(first), dtype=torch.float64).scatter_reduce_(0, group, (normals - pn[group]).norm(dim=-1),
                                                                        "amax")
     thick = ((corners * pn[group][:, None, :]).sum(-1) - po[group][:, None]).abs().amax(1)
@@ -81,15 +81,6 @@ def contact_pairs(scene: Scene) -> list[tuple[int, int]]:
             out += _exact(corners, nxt, normals, offs, members[start[gi[c]] + m], fj[c], k[c], eps)
             lo = hi
     return sorted(set(out))
-
-
-def _groups(sc: Scene, eps: float) -> tuple[Tensor, Tensor]:
-    """Each facet's plane group ``[F]`` (:func:`plane_ids`) and each group's first facet ``[G]``."""
-    group = plane_ids(sc, eps)
-    G = int(group.max()) + 1
-    first = torch.full((G,), group.numel(), dtype=torch.int64).scatter_reduce_(
-        0, group, torch.arange(group.numel()), "amin")
-    return group, first
 
 
 def _exact(corners: Tensor, nxt: Tensor, normals: Tensor, offs: Tensor, i: Tensor, fj: Tensor, k: Tensor,
