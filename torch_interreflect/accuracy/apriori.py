@@ -32,6 +32,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
+from .._unique import unique_rows
 from ..camera.point_kernel import point_form_factors
 from ..formfactors.operator import FormFactors
 from ..geometry._polygon import plane_eps, plane_ids, scene_size
@@ -68,10 +69,10 @@ def _corner_points(sc: Scene, eps: float) -> tuple[Tensor, Tensor, Tensor]:
     # corners within ~eps of each other are one vertex (a grid's shared vertices may differ in the last bits; a
     # boundary between two rounding cells only keeps two points)
     pos = torch.round(flat / max(eps, 1e-12 * scene_size(sc)))
-    vertex = torch.unique(pos, dim=0, return_inverse=True)[1]
-    planes_at = torch.bincount(torch.unique(torch.stack([vertex, plane], 1), dim=0)[:, 0])  # distinct planes
+    vertex = unique_rows(pos)[1]
+    planes_at = torch.bincount(unique_rows(torch.stack([vertex, plane], 1))[0][:, 0])  # distinct planes
     owner = torch.where(planes_at[vertex] == 1, plane, -1 - torch.arange(F).repeat_interleave(4))
-    _, index = torch.unique(torch.stack([owner, vertex], 1), dim=0, return_inverse=True)
+    _, index, _ = unique_rows(torch.stack([owner, vertex], 1))
     P = int(index.max()) + 1
     slot = torch.full((P,), 4 * F, dtype=torch.int64).scatter_reduce_(0, index, torch.arange(4 * F), "amin")
     facet = slot // 4

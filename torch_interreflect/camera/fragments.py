@@ -18,6 +18,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from .._unique import unique_rows
 from ..geometry._polygon import plane_eps, plane_ids, ray_plane_points
 from ..geometry.raycast import RayCaster
 from ..geometry.scene import Scene, area_average
@@ -96,8 +97,7 @@ def primary_fragments(scene: Scene, view: View, s: int, caster: RayCaster, *, ed
     if e > s:
         material = sc.material if sc.material is not None else torch.zeros(F, dtype=torch.int64)
         # planes told apart at the float noise of the scene's own dtype (float64 copy, float32 corners)
-        facet_label = torch.unique(torch.stack([plane_ids(sc, plane_eps(scene)), material.long()]), dim=1,
-                                   return_inverse=True)[1]
+        facet_label = unique_rows(torch.stack([plane_ids(sc, plane_eps(scene)), material.long()]), dim=1)[1]
         label = torch.where(front, facet_label[hit.clamp_min(0)], torch.where(hit >= 0, -2, -1))
         if free is not None:
             label = torch.where(front, 2 * label + free.long(), label)

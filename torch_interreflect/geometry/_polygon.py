@@ -11,6 +11,7 @@ import math
 import torch
 from torch import Tensor
 
+from .._unique import unique_rows
 from .scene import Scene
 
 __all__ = [
@@ -211,7 +212,7 @@ def plane_ids(sc: Scene, eps: float) -> Tensor:
     size = float((corners.reshape(-1, 3).max(0).values - corners.reshape(-1, 3).min(0).values).norm())  # own dtype
     res = max(1e-6, 100.0 * eps / max(size, 1e-300))
     key = torch.round(torch.cat([normals, offs[:, None] / max(size, 1e-300)], dim=1) / res)
-    return torch.unique(key, dim=0, return_inverse=True)[1]
+    return unique_rows(key)[1]
 
 
 def plane_groups(sc: Scene, eps: float, frames: bool = False) -> tuple[Tensor, ...] | None:

@@ -14,6 +14,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from .._unique import unique_rows
 from ._polygon import pieces_between
 from .scene import Scene
 
@@ -67,7 +68,7 @@ def mesh_edges(sc: Scene, eps: float) -> MeshEdges:
         The :class:`MeshEdges` of the scene, on the CPU.
     """
     c, flat_id, a, b = _facet_edges(sc, eps)
-    _, group, count = torch.unique(_end_key(a, b, eps), dim=0, return_inverse=True, return_counts=True)
+    _, group, count = unique_rows(_end_key(a, b, eps))
     order = torch.argsort(group, stable=True)  # within a group: ascending flat index
     _, first = np.unique(group[order].numpy(), return_index=True)
     first_t = torch.as_tensor(first)
@@ -143,7 +144,7 @@ def edge_pieces(sc: Scene, eps: float, chunk: int = 1 << 22) -> EdgePieces:
     edge, t0, t1 = pieces_between(pe, pt)
     p0 = a[edge] + t0[:, None] * d[edge]
     p1 = a[edge] + t1[:, None] * d[edge]
-    _, group, count = torch.unique(_end_key(p0, p1, eps), dim=0, return_inverse=True, return_counts=True)
+    _, group, count = unique_rows(_end_key(p0, p1, eps))
     member = flat_id[edge]
     order = torch.argsort(member, stable=True)
     order = order[torch.argsort(group[order], stable=True)]  # by group, then by 4 · facet + corner
