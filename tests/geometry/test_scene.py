@@ -173,3 +173,15 @@ def test_room_parts_and_scaling():
     assert 1400 < n4 < 1800 and n4 > 3 * s.num_facets
     with pytest.raises(ValueError, match="divisions"):
         ti.scenes.room(divisions=0)
+
+
+def test_room_without_ceiling_is_the_closed_room_less_its_ceiling():
+    closed = ti.scenes.room(divisions=1, lamp=False, dtype=torch.float64)
+    open_top = ti.scenes.room(divisions=1, lamp=False, ceiling=False, dtype=torch.float64)
+    assert open_top.material_names == ["floor", "walls", "table", "cabinet", "box"]
+    keep = closed.material != closed.material_names.index("ceiling")
+    assert open_top.num_facets == int(keep.sum()) < closed.num_facets
+    torch.testing.assert_close(open_top.corners, closed.corners[keep], rtol=0, atol=0)
+    # nothing faces down from the ceiling's height: the top is open
+    top = (open_top.centroids[:, 2] > 2.59) & (open_top.normals[:, 2] < -0.5)
+    assert not bool(top.any())

@@ -425,6 +425,7 @@ def room(
     size: Sequence[float] = (4.0, 5.0, 2.6),
     *,
     lamp: bool = True,
+    ceiling: bool = True,
     dtype: torch.dtype | None = None,
 ) -> Scene:
     """An indoor-like room built from ``trimesh.creation.box`` primitives, for large-scene tests.
@@ -433,13 +434,15 @@ def room(
     against a wall, a box on the table and, with ``lamp=True``, a ceiling lamp panel 1 cm below the ceiling,
     facing down. Every box face is split into quads of about ``1 / divisions`` metres; faces resting on the floor
     or on another box (leg tops, box and cabinet bottoms) are left out. The room is closed, so a sky light sees
-    nothing: light it with the lamp (an area light, material ``"lamp"``).
+    nothing: light it with the lamp (an area light, material ``"lamp"``), or leave the ceiling out
+(``ceiling=False``, a courtyard) and light it with the sky.
 
     Args:
         divisions: Facets per metre along each face edge (at least one facet per edge): about
             ``98·divisions²`` facets for the default size (4 → 1,596, 15 → 22,171, 23 → ~51,600).
         size: Room extents ``(x, y, z)`` in metres (z up).
         lamp: Include the lamp panel.
+        ceiling: Include the ceiling; without it the room is open at the top (and has no ``ceiling`` material).
         dtype: Floating dtype.
 
     Returns:
@@ -471,6 +474,8 @@ def room(
             nb = max(1, round(np.linalg.norm(b) * res))
             q = grid_quads(quad[0], a, b, na, nb)
             shell_key = "floor" if n[2] > 0.5 else "ceiling" if n[2] < -0.5 else "walls"
+            if name == "shell" and shell_key == "ceiling" and not ceiling:
+                continue
             parts[shell_key if name == "shell" else name].append(q)
 
     add("shell", (sx, sy, sz), (sx / 2, sy / 2, sz / 2), inward=True)
