@@ -627,6 +627,14 @@ def reference_specs() -> dict[str, dict]:
             "light": {"type": "sky", "radiance": 1.0 / math.pi},
             "reflectance": r,
         }
+        specs[f"room_sky_{tag}"] = {
+            "builder": "room",
+            "kwargs": {"divisions": 1.0, "lamp": False, "ceiling": False},
+            # a 4 x 5 x 2.6 m room open at the top (a courtyard) with a table, a cabinet and a box: the sky shines
+            # in from above; the furniture shadows the floor and stands on it (contacts)
+            "light": {"type": "sky", "radiance": 1.0 / math.pi},
+            "reflectance": r,
+        }
     return specs
 
 
