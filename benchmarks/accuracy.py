@@ -5,8 +5,9 @@ times ``ti.render`` (one wavelength, float64) and measures the error it actually
 and max, against
 
 * the **Mitsuba 3 reference** (also with the reference's own noise taken out in quadrature, ``debias``), and
-* a **much finer solution of our own model**: the scene uniformly refined by ``Scene.subdivide(k)`` with the
-  largest ``k`` that keeps ``F k² ≤ 10,000`` (form-factor tol 1e-6, solver tol 1e-10), area-averaged back, and
+* a **much finer solution of our own model**: the scene split at contacts (as ``render`` splits it, ``F`` pieces)
+  and uniformly refined by ``Scene.subdivide(k)`` with the largest ``k`` that keeps ``F k² ≤ 10,000``
+  (form-factor tol 1e-6, solver tol 1e-10), area-averaged back to the user's facets, and
   extrapolated. Three levels ``j = ⌊k/2⌋ < m < k`` are solved; the report compares with Mitsuba the plain
   ``E_k``, the first-order Richardson extrapolation ``(k E_k − j E_j) / (k − j)`` (``2 E_k − E_{k/2}`` for even
   ``k``) and the extrapolation with the convergence order fitted on the three levels, which is the one used
@@ -55,6 +56,7 @@ from benchmarks._common.ours import DTYPE, AccuracyWarning, direct_light, render
 from benchmarks._common.report import debias, fmt_e, fmt_t, rel_errors, write_lines
 from benchmarks.speed_vs_error import rows_from_markdown, time_at_error
 from torch_interreflect.errors import collect_warnings
+from torch_interreflect.geometry import split_at_contacts
 
 CACHE = ROOT / "out" / "accuracy"
 WAVELENGTHS = [550.0]
@@ -69,9 +71,20 @@ FULL_SCENES = [
     "w_shape_sun_r2",
     "cornell_sky_r9",
     "cornell_sky_r2",
+    "room_sky_r9",
+    "room_sky_r2",
 ]
+#: Scenes lit by the sky through openings, where the light's ray-cast part bounds what refinement reaches: the
+#: request is met or ``AccuracyWarning`` is raised, and the summary counts them apart.
+SKY_SCENES = ("cornell_sky", "room_sky")
+#: Requests per scene where not all of ``FULL_ACC`` (the room stops at its light's ray-cast part, about 0.8 %,
+#: after 25-50 s at 1e-2; a tighter request runs into max_facets after minutes and says so the same way).
+SCENE_ACC = {"room_sky_r9": [1e-2, 5e-3], "room_sky_r2": [1e-2, 5e-3]}
 QUICK_SCENES = ["vgroove30_sun_r9", "box_corner_sun_r2", "w_shape_sun_r9"]
 FULL_ACC = [1e-2, 5e-3, 2e-3, 1e-3]
+#: Renders (and uniform solutions) faster than this are timed twice and the faster time kept: at tens of
+#: milliseconds one call's time moves by 20-50 % with what else the shared machine does.
+BEST_OF_TWO_S = 2.0
 #: Request of the untimed warm-up render of each case's scene in its child process.
 WARM_ACCURACY = 0.5
 QUICK_ACC = [1e-2, 3e-3]
@@ -98,7 +111,19 @@ def problem(ref: dict) -> dict:
         "illuminant": torch.full((1,), level, dtype=DTYPE),
         "light_spec": lt,
         "r": float(spec["reflectance"]),
+        "pieces": split_at_contacts(scene)[0].num_facets,  # facets after the split at contacts
     }
+
+
+def pieces_of(p: dict) -> int:
+    """Facets of the problem's scene split at contacts (what the uniform solutions subdivide)."""
+    return int(p["pieces"])
+
+
+def split_tag(p: dict) -> str:
+    """Cache-name tag of a scene split at contacts (empty when nothing stands on anything): the uniform levels of
+    such a scene were cached unsplit before."""
+    return "" if pieces_of(p) == p["scene"].num_facets else f"_split{pieces_of(p)}"
 
 
 def geometry_key(ref: dict) -> str:
@@ -110,11 +135,13 @@ def geometry_key(ref: dict) -> str:
 def uniform(
     ps: Sequence[dict], k: int, *, ff_tol: float = 1e-6, solve_tol: float = 1e-10
 ) -> tuple[list[np.ndarray], float, list[float]]:
-    """Our model on ``subdivide(k)`` for problems that share geometry and light, averaged back to the user's
-    facets: (irradiance [F] per problem, kernel seconds (form factors + direct light), solve seconds per problem)."""
+    """Our model on ``subdivide(k)`` of the scene split at contacts (as ``render`` splits it before its first
+    solve) for problems that share geometry and light, averaged back to the user's facets: (irradiance [F] per
+    problem, kernel seconds (contacts + form factors + direct light), solve seconds per problem)."""
     scene = ps[0]["scene"]
     t0 = time.perf_counter()
-    fine, parent = scene.subdivide(k)
+    pieces, user = split_at_contacts(scene)
+    fine, parent = pieces.subdivide(k)
     K = ti.form_factors(fine, quadrature_tol=ff_tol, progress=False)
     E0 = direct_light(fine, K, ps[0]["light_spec"])
     kernel_s = time.perf_counter() - t0
@@ -123,7 +150,8 @@ def uniform(
         t0 = time.perf_counter()
         refl = torch.full((fine.num_facets,), p["r"], dtype=DTYPE)
         E = solve(K, refl, E0, tol=solve_tol)
-        E = scene.average_to_parent(E.reshape(fine.num_facets, -1), parent, fine)
+        E = pieces.average_to_parent(E.reshape(fine.num_facets, -1), parent, fine)
+        E = scene.average_to_parent(E, user, pieces)
         solve_s.append(time.perf_counter() - t0)
         out.append(E.detach().numpy().reshape(-1))
     return out, kernel_s, solve_s
@@ -172,17 +200,17 @@ def finer_solution(
     ``k``), ``richp`` with the order fitted on the three levels (:func:`fitted_order`) from ``m`` and ``k``.
     Each level is cached per scene (``siblings``: other ``name -> problem`` with the same geometry and light,
     solved with the same form factors and cached alongside)."""
-    levels = levels_for(p["scene"].num_facets, max_facets)
+    levels = levels_for(pieces_of(p), max_facets)
     sib = {n: q for n, q in (siblings or {}).items() if n != name}
     E, secs = [], []
     for lv in levels:
-        path = cache / f"level_{name}_k{lv}.npz"
+        path = cache / f"level_{name}{split_tag(p)}_k{lv}.npz"
         if not path.exists():
             names = [name, *sib]
             sols, kernel_s, solve_s = uniform([p, *sib.values()], lv)
             cache.mkdir(parents=True, exist_ok=True)
             for n, e, s_ in zip(names, sols, solve_s, strict=True):
-                np.savez(cache / f"level_{n}_k{lv}.npz", E=e, seconds=kernel_s + s_)
+                np.savez(cache / f"level_{n}{split_tag(p)}_k{lv}.npz", E=e, seconds=kernel_s + s_)
         z = np.load(path)
         E.append(z["E"])
         secs.append(float(z["seconds"]))
@@ -236,7 +264,8 @@ def run_case(p: dict, accuracy: float, max_facets: int = 12_000, extrapolate: bo
         "bounces": rep.bounces,
         "report_seconds": {k: float(v) for k, v in rep.seconds.items()},
         "history": rep.history,
-        "warning": warned[0] if warned else "",
+        # render's own warning (request not reached) first; the solver's (closure error) when it is the only one
+        "warning": next((w for w in warned if w.startswith("render")), warned[0] if warned else ""),
     }
 
 
@@ -246,7 +275,10 @@ def _child(conn: Any, p: dict, accuracy: float, max_facets: int, extrapolate: bo
         # against 24-59 ms in the parent); one render of the same scene at a loose request warms it, as the
         # uniform curve's best of two is warm
         run_case(p, WARM_ACCURACY, max_facets, extrapolate)
-        conn.send(run_case(p, accuracy, max_facets, extrapolate))
+        c = run_case(p, accuracy, max_facets, extrapolate)
+        if c["seconds"] < BEST_OF_TWO_S:  # timed as the uniform curve is: the faster of two under 2 s
+            c["seconds"] = min(c["seconds"], run_case(p, accuracy, max_facets, extrapolate)["seconds"])
+        conn.send(c)
     except BaseException:  # report anything to the parent rather than dying silently
         conn.send({"error": traceback.format_exc()})
     conn.close()
@@ -307,18 +339,18 @@ def uniform_curve(
     in this run's thread setting. Solutions and times are cached per scene (the errors are recomputed against
     the finer solution given); ``siblings`` (name -> (problem, finer)) with the same geometry share the timed
     kernel and are cached alongside."""
-    tag = f"{max_facets}_t{torch.get_num_threads()}"
+    tag = f"{max_facets}_t{torch.get_num_threads()}{split_tag(p)}"
     path = cache / f"uniform_{name}_{tag}.npz"
     if not path.exists():
         group = {name: p, **{n: v[0] for n, v in (siblings or {}).items() if n != name}}
         sols: dict[str, list[np.ndarray]] = {n: [] for n in group}
         times: dict[str, list[float]] = {n: [] for n in group}
-        F = p["scene"].num_facets
+        F = pieces_of(p)  # split at contacts
         ks = []
         k = 1
         while F * k * k <= max_facets:
             es, kt, st = uniform(list(group.values()), k, ff_tol=1e-4, solve_tol=1e-6)
-            if kt + max(st) < 2.0:
+            if kt + max(st) < BEST_OF_TWO_S:
                 _, kt2, st2 = uniform(list(group.values()), k, ff_tol=1e-4, solve_tol=1e-6)
                 kt, st = min(kt, kt2), [min(x, y) for x, y in zip(st, st2, strict=True)]
             for n, e, s_ in zip(group, es, st, strict=True):
@@ -331,7 +363,7 @@ def uniform_curve(
             np.savez(cache / f"uniform_{n}_{tag}.npz", k=np.array(ks), E=np.array(sols[n]), seconds=np.array(times[n]))
     z = np.load(path)
     timed = path.stat().st_mtime  # when the curve was timed: this run, or an earlier one whose cache was kept
-    F = p["scene"].num_facets
+    F = pieces_of(p)
     out = []
     for k, e, t in zip(z["k"], z["E"], z["seconds"], strict=True):
         rmse, mx = rel_errors(e, finer["best"])
@@ -496,10 +528,10 @@ def plot(results: dict, md_rows: dict, path: Path, title: str) -> None:
 
 def against_mitsuba(results: dict, md_rows: dict) -> list[str]:
     """Mitsuba's time to reach the requested error over ``render``'s, per request, on the bright scenes without
-    the Cornell box (geometric mean and range)."""
+    the sky-lit scenes (geometric mean and range)."""
     per: dict[float, list[float]] = {}
     for n, r in results.items():
-        if n.startswith("cornell") or not n.endswith("_r9"):
+        if n.startswith(SKY_SCENES) or not n.endswith("_r9"):
             continue
         mit, _ = md_curves(n, md_rows, r["noise"])
         for c in r["cases"]:
@@ -509,7 +541,7 @@ def against_mitsuba(results: dict, md_rows: dict) -> list[str]:
     if not per:
         return []
     lines = ["", "Mitsuba's time at the requested error / `render`'s time, bright scenes (r = 0.9) without the "
-             "Cornell box (Mitsuba read off `speed_vs_error.md`, as above):", "",
+             "sky-lit scenes (Mitsuba read off `speed_vs_error.md`, as above):", "",
              "| requested | scenes | geometric mean | range |", "|---:|---:|---:|---|"]
     for acc in sorted(per, reverse=True):
         x = per[acc]
@@ -543,17 +575,31 @@ def summary(results: dict) -> list[str]:
         f"| report.reached | {f_rep} / {m} | {f_rep / m:.0%} |",
         f"| AccuracyWarning | {f_warn} / {m} | {f_warn / m:.0%} |",
     ]
-    rest = [c for n, c in ok if not n.startswith("cornell")]
+    rest = [c for n, c in ok if not n.startswith(SKY_SCENES)]
     if rest and len(rest) < m:
         r_fin = sum(c["m"]["vs_finer"] <= c["accuracy"] for c in rest)
         r_mit = sum(c["m"]["vs_mitsuba_debiased"] <= c["accuracy"] for c in rest)
         r_est = sum(c["estimated"] >= c["m"]["vs_finer"] for c in rest)
         lines += [
-            f"| without the Cornell box: actual ≤ requested (finer) | {r_fin} / {len(rest)} "
+            f"| without the sky-lit scenes: actual ≤ requested (finer) | {r_fin} / {len(rest)} "
             f"| {r_fin / len(rest):.0%} |",
-            f"| without the Cornell box: actual ≤ requested (Mitsuba, debiased) | {r_mit} / {len(rest)} "
+            f"| without the sky-lit scenes: actual ≤ requested (Mitsuba, debiased) | {r_mit} / {len(rest)} "
             f"| {r_mit / len(rest):.0%} |",
-            f"| without the Cornell box: estimated ≥ actual | {r_est} / {len(rest)} | {r_est / len(rest):.0%} |",
+            f"| without the sky-lit scenes: estimated ≥ actual | {r_est} / {len(rest)} | {r_est / len(rest):.0%} |",
+        ]
+    sky = [(n, c) for n, c in ok if n.startswith(SKY_SCENES)]
+    if sky:  # issue 15: on these the request is met or a warning says it is not (against Mitsuba: the finer
+        # solution of the room is further from Mitsuba than render is)
+        s_met = sum(c["m"]["vs_mitsuba_debiased"] <= c["accuracy"] for _, c in sky)
+        s_warn = sum(bool(c["warning"]) for _, c in sky)
+        silent = [f"{n} at {c['accuracy']:g}" for n, c in sky
+                  if c["m"]["vs_mitsuba_debiased"] > c["accuracy"] and not c["warning"]]
+        lines += [
+            f"| sky-lit scenes: actual ≤ requested (Mitsuba, debiased) | {s_met} / {len(sky)} "
+            f"| {s_met / len(sky):.0%} |",
+            f"| sky-lit scenes: AccuracyWarning | {s_warn} / {len(sky)} | {s_warn / len(sky):.0%} |",
+            f"| sky-lit scenes: missed without a warning (Mitsuba, debiased) | {len(silent)} / {len(sky)} "
+            f"| {'; '.join(silent) or 'none'} |",
         ]
     # cost: adaptive against the cheapest uniform setting that reaches the same error
     for what, key in (("the same error as `render`", None), ("the requested accuracy", "accuracy")):
@@ -602,6 +648,7 @@ def remeasure(results: dict, a: argparse.Namespace) -> None:
             sib = {m: (ps[m], finers[m]) for m in names}
             results[n]["uniform"] = uniform_curve(n, ps[n], finers[n], a.uniform_facets, siblings=sib)
             results[n]["finer"] = finer_summary(refs[n], finers[n])
+            results[n]["pieces"] = pieces_of(ps[n])
             for c in results[n]["cases"]:
                 if "irradiance" in c:
                     c["irradiance"] = np.asarray(c["irradiance"])
@@ -632,7 +679,7 @@ def run_group(names: Sequence[str], accs: Sequence[float], a: argparse.Namespace
     for n in names:
         ref, p, finer = refs[n], ps[n], finers[n]
         cases = []
-        for acc in accs:
+        for acc in [x for x in accs if x in SCENE_ACC[n]] if n in SCENE_ACC else accs:
             c = run_case_limited(p, acc, a.max_facets, a.limit, not a.last_level)
             if "irradiance" in c:
                 c["m"] = measure(c, ref, finer)
@@ -648,6 +695,7 @@ def run_group(names: Sequence[str], accs: Sequence[float], a: argparse.Namespace
         out[n] = {
             "noise": float(ref["settings"]["rel_noise_rms"]),
             "facets": p["scene"].num_facets,
+            "pieces": pieces_of(p),
             "finer": finer_summary(ref, finer),
             "uniform": curves[n],
             "cases": cases,
@@ -667,11 +715,13 @@ def write(results: dict, a: argparse.Namespace, suffix: str, wall: float, starte
         "",
         "`ti.render(scene, reflectance, light, illuminant, accuracy=a, wavelengths=[550 nm], "
         f"max_facets={a.max_facets})` on the grey reference scenes (float64). Per-facet relative errors of the "
-        "irradiance: *actual vs finer* is against our own model solved much finer (uniform `subdivide(k)` with "
-        f"`F k² ≤ {a.finer_facets}`, form-factor tol 1e-6, extrapolated with a fitted convergence order, see "
+        "irradiance: *actual vs finer* is against our own model solved much finer (uniform `subdivide(k)` of the "
+        f"scene split at contacts, its `F` pieces with `F k² ≤ {a.finer_facets}`, form-factor tol 1e-6, "
+        "extrapolated with a fitted convergence order, see "
         "below); *vs Mitsuba* is against the cached Mitsuba 3 reference, with its noise taken out in quadrature "
         "(raw in brackets). *time* is the wall time of the `render` call (each case in a forked child, after an "
-        f"untimed render of the same scene at accuracy={WARM_ACCURACY:g} there; limit {a.limit:.0f} s). "
+        f"untimed render of the same scene at accuracy={WARM_ACCURACY:g} there, the faster of two calls under "
+        f"{BEST_OF_TWO_S:g} s, as for the uniform curves; limit {a.limit:.0f} s). "
         "*estimated* is `report.estimated`.",
         "",
         "Equal-error columns, at the *actual vs finer* error of the row: *uniform* is the cheapest uniform "
@@ -692,8 +742,9 @@ def write(results: dict, a: argparse.Namespace, suffix: str, wall: float, starte
         "",
         "## The finer solution",
         "",
-        "Uniform solutions at three refinements `j < m < k` (the largest `k` with "
-        f"`F k² ≤ {a.finer_facets}`), the first-order Richardson extrapolation `(k E_k − j E_j)/(k − j)` and the "
+        "Uniform solutions at three refinements `j < m < k` of the scene split at contacts (the largest `k` with "
+        f"`F k² ≤ {a.finer_facets}`, `F` its pieces), the first-order Richardson extrapolation "
+        "`(k E_k − j E_j)/(k − j)` and the "
         "extrapolation with the order `p` fitted on the three levels (`E_h = E + C h^p`, `h = 1/k`, one `p` per "
         "scene from the RMS changes between levels): `E_k + (E_k − E_m) k^−p / (m^−p − k^−p)`, against Mitsuba "
         "(noise taken out, raw in brackets). The fitted-order extrapolation is the *finer solution* of the "
@@ -712,8 +763,9 @@ def write(results: dict, a: argparse.Namespace, suffix: str, wall: float, starte
             return f"{fmt_e(debias(x[0], n))} ({fmt_e(x[0])})"
 
         j, m, k = f["levels"]
+        pieces = r.get("pieces", r["facets"])  # facets after the split at contacts
         md.append(
-            f"| {name} | {j} / {m} / {k} | {r['facets'] * k**2} | {f['order']:.2f} | {e(v['E_j'])} | {e(v['E_m'])} "
+            f"| {name} | {j} / {m} / {k} | {pieces * k**2} | {f['order']:.2f} | {e(v['E_j'])} | {e(v['E_m'])} "
             f"| {e(v['E_k'])} | {e(v['rich1'])} | {e(v['richp'])} | {fmt_e(f['richp_vs_E_k'][0])} "
             f"| {fmt_t(f['seconds'])} |"
         )
