@@ -125,7 +125,7 @@ def test_no_private_name_across_modules() -> None:
 
 #: Stages in data-flow order; a module may import from its own stage or an earlier one, never a later one.
 STAGES = [
-    ("errors", "_checks", "_version", "_deprecation"),
+    ("errors", "_checks", "_unique", "_sparse", "_version", "_deprecation"),
     ("geometry",),
     ("formfactors",),
     ("lights", "spectral"),

@@ -64,6 +64,9 @@ __all__ = ["AMPLIFICATION", "Q_EXTRAPOLATE", "Q_MAX", "Q_MIN", "STALL", "Level",
 #: believed, faster than 1/3 is not.
 Q_MIN, Q_MAX = 1 / 3, 0.8
 
+#: The ratio ``q`` taken for facets whose form factors rest on ray-cast visibility (their measured ratio is noisy).
+Q_SAMPLED = Q_MAX
+
 #: The largest ratio ``q`` used in the extrapolation ``x + q/(1 − q) · change``, and the one used before any is
 #: measured: ``c = 2/3``, the middle of ``c ∈ [1/3, 1]`` for orders 2 to 1 (the estimate carries the rest).
 Q_EXTRAPOLATE = 0.4
@@ -303,7 +306,7 @@ def _update_estimate(st: Refinement, user_vals: Tensor, extrapolate: bool) -> No
         return
     delta = relative_change(st.prev_user, user_vals).cpu()
     q = (delta / st.prev_delta).nan_to_num(0.5).clamp(Q_MIN, Q_MAX)
-    q = torch.where(st.sampled, torch.full_like(q, Q_MAX), q)  # sampled visibility converges slowly
+    q = torch.where(st.sampled, torch.full_like(q, Q_SAMPLED), q)  # sampled visibility converges slowly
     # facets with ray-cast visibility are not extrapolated: on the W shape that made their estimate erratic
     # (0.22 % -> 0.25 % over one refinement) and doubled the leaves at 2e-3
     t = st.touched & ~st.sampled & extrapolate

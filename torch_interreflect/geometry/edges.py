@@ -123,7 +123,7 @@ def edge_pieces(sc: Scene, eps: float, chunk: int = 1 << 22) -> EdgePieces:
     by their end points (:class:`EdgePieces`). Not differentiated; ``chunk`` bounds the (edge, corner) tests at
     once."""
     c, flat_id, a, b = _facet_edges(sc, eps)
-    verts = torch.unique(torch.round(c.reshape(-1, 3) / eps), dim=0) * eps  # the corners, each once
+    verts = unique_rows(torch.round(c.reshape(-1, 3) / eps))[0] * eps  # the corners, each once
     d = b - a
     length2 = (d * d).sum(-1)
     cuts_e, cuts_t = [], []

@@ -433,9 +433,10 @@ def room(
     The room shell (floor, ceiling, four walls, seen from inside) holds a table (top and four legs), a cabinet
     against a wall, a box on the table and, with ``lamp=True``, a ceiling lamp panel 1 cm below the ceiling,
     facing down. Every box face is split into quads of about ``1 / divisions`` metres; faces resting on the floor
-    or on another box (leg tops, box and cabinet bottoms) are left out. The room is closed, so a sky light sees
-    nothing: light it with the lamp (an area light, material ``"lamp"``), or leave the ceiling out
-(``ceiling=False``, a courtyard) and light it with the sky.
+    or on another box (leg tops, box and cabinet bottoms) are left out. With its ceiling the room is closed, so a
+    sky light sees nothing: light it with the lamp (an area light, material ``"lamp"``). Without it
+    (``ceiling=False``, a courtyard, usually with ``lamp=False``: the panel would hang under no ceiling) light it
+    with the sky.
 
     Args:
         divisions: Facets per metre along each face edge (at least one facet per edge): about
@@ -446,7 +447,8 @@ def room(
         dtype: Floating dtype.
 
     Returns:
-        A scene with materials ``floor, ceiling, walls, table, cabinet, box`` (and ``lamp``).
+        A scene with materials ``floor, ceiling, walls, table, cabinet, box`` (and ``lamp``); without the ceiling
+        ``floor, walls, table, cabinet, box`` (the indices after ``floor`` move down by one).
 
     Example:
         >>> import torch_interreflect as ti
