@@ -136,8 +136,8 @@ def _corner_covariance(factors: Tensor, index: Tensor, dB: Tensor, areas: Tensor
         cnt = crow[p + 1] - crow[p]
         slot = torch.repeat_interleave(torch.arange(p.numel()), cnt)
         ent = crow[p][slot] + torch.arange(slot.numel()) - (torch.cumsum(cnt, 0) - cnt)[slot]
-        cov = torch.zeros((j1 - j0) * n, B, dtype=torch.float64)  # [source, target] flattened: index_add_ is
-        # several times faster than index_put_(accumulate=True) here
+        cov = torch.zeros((j1 - j0) * n, B, dtype=torch.float64)  # [source, target] flattened: index_add_ took
+        # 1.7 ms where index_put_(accumulate=True) took 2.4 (200 facets, one column)
         cov.index_add_(0, (slot // 4) * n + col[ent], val[ent][:, None] * dB[j0:j1].reshape(-1, B)[slot])
         acc += (areas[j0:j1, None, None] * cov.reshape(j1 - j0, n, B).abs()).sum(0) / 4
     return acc / areas[:, None].clamp_min(1e-300)
