@@ -260,7 +260,11 @@ def plan(
     _check_request(scene, accuracy, max_facets)
     pb = _problem(scene, reflectance, light, illuminant, camera, accuracy, wavelengths, extrapolate)
     show = progress if progress is not None else scene.num_facets >= 2000 or accuracy < 3e-3
-    st = refine(pb, max_facets=max_facets, max_iterations=max_iterations, show=show, t_start=t_start)
+    with warnings.catch_warnings():
+        # the planning solves (each level, the a-priori estimate) would each repeat the solver's closure-error
+        # warning of the same form factors; the solve of the chosen plan (Plan.apply) raises it once
+        warnings.filterwarnings("ignore", message=r"solve\(", category=AccuracyWarning)
+        st = refine(pb, max_facets=max_facets, max_iterations=max_iterations, show=show, t_start=t_start)
     t = time.perf_counter()
     r_max = float(pb.r.max()) if pb.r.numel() else 0.0
     amp = _amplification(st)
