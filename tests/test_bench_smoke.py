@@ -98,7 +98,7 @@ def test_accuracy_benchmark_one_tiny_case(tmp_path: Path) -> None:
     ref = mr.load_reference("box_corner_sun_r2")
     p = ab.problem(ref)
     finer = ab.finer_solution("box_corner_sun_r2", p, max_facets=200, cache=tmp_path)
-    assert finer["levels"] == (1, 2, 3) and (tmp_path / "level_box_corner_sun_r2_k3.npz").exists()
+    assert finer["levels"] == (1, 2, 3) and (tmp_path / f"level_box_corner_sun_r2{ab.split_tag(p)}_k3.npz").exists()
     assert 1 <= finer["order"] <= 2
     case = ab.run_case(p, 2e-2, max_facets=400)
     m = ab.measure(case, ref, finer)
@@ -240,8 +240,13 @@ def test_accuracy_benchmark_uniform_levels_split_at_contacts() -> None:
     from benchmarks import accuracy as ab
 
     p = ab.problem(mr.load_reference("cornell_sky_r2"))
-    assert (p["scene"].num_facets, ab.pieces_of(p), ab.split_tag(p)) == (16, 50, "_split50")
-    assert ab.split_tag(ab.problem(mr.load_reference("box_corner_sun_r2"))) == ""
+    assert (p["scene"].num_facets, ab.pieces_of(p)) == (16, 50) and ab.split_tag(p).startswith("_split50_g")
+    box = ab.problem(mr.load_reference("box_corner_sun_r2"))
+    assert ab.split_tag(box).startswith("_g") and len(ab.split_tag(box)) == 10
+    # the same facet count (200) on another geometry gets another cache name; the same geometry the same one
+    g30, g45 = (ab.problem(mr.load_reference(f"vgroove{a}_sun_r2")) for a in (30, 45))
+    assert ab.pieces_of(g30) == ab.pieces_of(g45) == 200 and ab.split_tag(g30) != ab.split_tag(g45)
+    assert ab.split_tag(ab.problem(mr.load_reference("vgroove30_sun_r9"))) == ab.split_tag(g30)
     (E,), _, _ = ab.uniform([p], 1, ff_tol=1e-4, solve_tol=1e-8)
     assert E.shape == (16,)
     pieces, user = ti.geometry.split_at_contacts(p["scene"])
