@@ -53,11 +53,11 @@ import torch
 import torch_interreflect as ti
 from benchmarks._common import RESULTS, ROOT
 from benchmarks._common import mitsuba as mr
-from benchmarks._common.ours import DTYPE, AccuracyWarning, direct_light, render, solve
+from benchmarks._common.ours import DTYPE, AccuracyWarning, direct_light, render, solve, split_and_subdivide
 from benchmarks._common.report import debias, fmt_e, fmt_t, rel_errors, write_lines
 from benchmarks.speed_vs_error import rows_from_markdown, time_at_error
 from torch_interreflect.errors import collect_warnings
-from torch_interreflect.geometry import split_at_contacts
+from torch_interreflect.geometry import area_average, split_at_contacts
 
 CACHE = ROOT / "out" / "accuracy"
 WAVELENGTHS = [550.0]
@@ -146,8 +146,7 @@ def uniform(
     problem, kernel seconds (contacts + form factors + direct light), solve seconds per problem)."""
     scene = ps[0]["scene"]
     t0 = time.perf_counter()
-    pieces, user = split_at_contacts(scene)
-    fine, parent = pieces.subdivide(k)
+    fine, user = split_and_subdivide(scene, k)
     K = ti.form_factors(fine, quadrature_tol=ff_tol, progress=False)
     E0 = direct_light(fine, K, ps[0]["light_spec"])
     kernel_s = time.perf_counter() - t0
@@ -156,8 +155,7 @@ def uniform(
         t0 = time.perf_counter()
         refl = torch.full((fine.num_facets,), p["r"], dtype=DTYPE)
         E = solve(K, refl, E0, tol=solve_tol)
-        E = pieces.average_to_parent(E.reshape(fine.num_facets, -1), parent, fine)
-        E = scene.average_to_parent(E, user, pieces)
+        E = area_average(E.reshape(fine.num_facets, -1), user, fine.areas, scene.num_facets)
         solve_s.append(time.perf_counter() - t0)
         out.append(E.detach().numpy().reshape(-1))
     return out, kernel_s, solve_s

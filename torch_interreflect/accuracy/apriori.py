@@ -35,7 +35,7 @@ from torch import Tensor
 from .._unique import unique_rows
 from ..camera.point_kernel import point_form_factors
 from ..formfactors.operator import FormFactors
-from ..geometry._polygon import plane_eps, plane_ids, scene_size
+from ..geometry._polygon import group_firsts, plane_eps, plane_ids, scene_size
 from ..geometry.raycast import RayCaster
 from ..geometry.scene import Scene
 from ..solver.api import solve
@@ -73,8 +73,7 @@ def _corner_points(sc: Scene, eps: float) -> tuple[Tensor, Tensor, Tensor]:
     planes_at = torch.bincount(unique_rows(torch.stack([vertex, plane], 1))[0][:, 0])  # distinct planes
     owner = torch.where(planes_at[vertex] == 1, plane, -1 - torch.arange(F).repeat_interleave(4))
     _, index, _ = unique_rows(torch.stack([owner, vertex], 1))
-    P = int(index.max()) + 1
-    slot = torch.full((P,), 4 * F, dtype=torch.int64).scatter_reduce_(0, index, torch.arange(4 * F), "amin")
+    slot = group_firsts(index)  # each point's first corner slot
     facet = slot // 4
     x = flat[slot] + 1e-6 * (sc.centroids.detach()[facet] - flat[slot])
     return x, facet, index.reshape(F, 4)
