@@ -185,3 +185,5 @@ def test_room_without_ceiling_is_the_closed_room_less_its_ceiling():
     # nothing faces down from the ceiling's height: the top is open
     top = (open_top.centroids[:, 2] > 2.59) & (open_top.normals[:, 2] < -0.5)
     assert not bool(top.any())
+    with pytest.raises(TypeError, match="ceiling must be True or False; got 'no'"):
+        ti.scenes.room(divisions=1, ceiling="no")

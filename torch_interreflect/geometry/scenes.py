@@ -458,6 +458,8 @@ def room(
     """
     if not (isinstance(divisions, (int, float)) and not isinstance(divisions, bool) and divisions > 0):
         raise ValueError(f"divisions must be a positive number (facets per metre); got {divisions!r}")
+    if not isinstance(ceiling, bool):
+        raise TypeError(f"ceiling must be True or False; got {ceiling!r}")
     sx, sy, sz = (float(v) for v in size)
     if min(sx, sy, sz) <= 0:
         raise ValueError(f"size must be three positive extents in metres; got {size!r}")
