@@ -234,8 +234,63 @@ def finer_solution(
     }
 
 
+#: Unknowns (pieces × k² × 6) of the quadratic-basis reference: its finest level is solved densely (about 30 s).
+QUADRATIC_UNKNOWNS = 11_000
+
+
+def quadratic_reference(name: str, p: dict, max_unknowns: int = QUADRATIC_UNKNOWNS, cache: Path = CACHE,
+                        siblings: dict | None = None) -> dict | None:
+    """Our model on the quadratic basis (:func:`torch_interreflect.formfactors.moment_form_factors`, tol 1e-8) on
+    ``subdivide(k)`` of the scene split at contacts, the largest ``k`` with ``6 F k² ≤ max_unknowns``, and on
+    ``k − 1`` (their difference is its convergence), averaged to the user's facets; ``None`` where the light is
+    rough (a shadow edge or a sky through blockable pairs: the quadratic basis converges slowly there, see
+    :mod:`torch_interreflect.accuracy.moments_plan`). Cached per scene."""
+    from torch_interreflect.formfactors import moment_form_factors
+    from torch_interreflect.light_moments import light_is_rough, light_moments
+    from torch_interreflect.solver.moments import facet_averages, solve_moments
+
+    pieces = split_at_contacts(p["scene"])[0]
+    direction = isinstance(p["light"], torch.Tensor)
+    if light_is_rough(pieces, p["light"], direction=direction):
+        return None
+    k = max(2, math.isqrt(max_unknowns // (6 * pieces_of(p))))
+    path = cache / f"quadratic_{name}{split_tag(p)}_k{k}.npz"
+    if not path.exists():
+        group = {name: p, **{n: q for n, q in (siblings or {}).items() if n != name}}
+        sols: dict[str, list[np.ndarray]] = {n: [] for n in group}
+        t0 = time.perf_counter()
+        for lv in (k - 1, k):
+            fine, user = split_and_subdivide(p["scene"], lv)
+            G = moment_form_factors(fine, 2, quadrature_tol=1e-8)
+            g = light_moments(fine, G, p["light"], direction=direction)
+            for n, q in group.items():
+                refl = torch.full((fine.num_facets,), q["r"], dtype=DTYPE)
+                c = solve_moments(G, refl, g[:, :, None] * q["illuminant"])
+                E = area_average(facet_averages(c).reshape(fine.num_facets, -1), user, fine.areas,
+                                 p["scene"].num_facets)
+                sols[n].append(E.numpy().reshape(-1))
+        cache.mkdir(parents=True, exist_ok=True)
+        for n in group:
+            np.savez(cache / f"quadratic_{n}{split_tag(p)}_k{k}.npz", E=np.array(sols[n]), k=k,
+                     seconds=time.perf_counter() - t0)
+    z = np.load(path)
+    return {"k": int(z["k"]), "E": z["E"][1], "E_back": z["E"][0], "seconds": float(z["seconds"])}
+
+
+def with_reference(finer: dict, quad: dict | None) -> dict:
+    """The finer solution whose ``best`` is the quadratic reference where there is one (it is the closer to
+    converged: on the 30° V-groove its k = 3 and 4 differ by 0.003 %, while the extrapolated constant-basis solution
+    is 0.024 % from it), the constant basis's extrapolation elsewhere."""
+    out = dict(finer)
+    out["quadratic"] = quad
+    if quad is not None:
+        out["best"] = quad["E"]
+    return out
+
+
 # ---------------------------------------------------------------------------------------------- one case
-def run_case(p: dict, accuracy: float, max_facets: int = 12_000, extrapolate: bool = True) -> dict:
+def run_case(p: dict, accuracy: float, max_facets: int = 12_000, extrapolate: bool = True,
+             basis: str = "auto") -> dict:
     """``ti.render`` once, timed (wall time of the call); the ``AccuracyWarning`` is recorded, not raised.
     ``extrapolate=False`` (``--last-level``): the last refinement level alone, the A/B of the extrapolation."""
     with collect_warnings(AccuracyWarning) as warned:
@@ -250,6 +305,7 @@ def run_case(p: dict, accuracy: float, max_facets: int = 12_000, extrapolate: bo
             max_facets=max_facets,
             extrapolate=extrapolate,
             progress=False,
+            basis=basis,
         )
         seconds = time.perf_counter() - t0
     rep = out.report
@@ -268,6 +324,7 @@ def run_case(p: dict, accuracy: float, max_facets: int = 12_000, extrapolate: bo
         "bounces": rep.bounces,
         "report_seconds": {k: float(v) for k, v in rep.seconds.items()},
         "history": rep.history,
+        "degree": int(getattr(rep, "degree", 0)),
         # render's own warning (request not reached) first; the solver's (closure error) when it is the only one
         "warning": next((w for w in warned if w.startswith("render")), warned[0] if warned else ""),
         "warnings": list(warned),
@@ -280,26 +337,27 @@ def render_warned(c: dict) -> bool:
     return c["warning"].startswith("render")
 
 
-def _child(conn: Any, p: dict, accuracy: float, max_facets: int, extrapolate: bool) -> None:
+def _child(conn: Any, p: dict, accuracy: float, max_facets: int, extrapolate: bool, basis: str) -> None:
     try:
         # a forked child's first render pays 15-45 ms of cold start (measured on the dark scenes: 42-104 ms
         # against 24-59 ms in the parent); one render of the same scene at a loose request warms it, as the
         # uniform curve's best of two is warm
-        run_case(p, WARM_ACCURACY, max_facets, extrapolate)
-        c = run_case(p, accuracy, max_facets, extrapolate)
+        run_case(p, WARM_ACCURACY, max_facets, extrapolate, basis)
+        c = run_case(p, accuracy, max_facets, extrapolate, basis)
         if c["seconds"] < BEST_OF_TWO_S:  # timed as the uniform curve is: the faster of two under 2 s
-            c["seconds"] = min(c["seconds"], run_case(p, accuracy, max_facets, extrapolate)["seconds"])
+            c["seconds"] = min(c["seconds"], run_case(p, accuracy, max_facets, extrapolate, basis)["seconds"])
         conn.send(c)
     except BaseException:  # report anything to the parent rather than dying silently
         conn.send({"error": traceback.format_exc()})
     conn.close()
 
 
-def run_case_limited(p: dict, accuracy: float, max_facets: int, limit_s: float, extrapolate: bool = True) -> dict:
+def run_case_limited(p: dict, accuracy: float, max_facets: int, limit_s: float, extrapolate: bool = True,
+                     basis: str = "auto") -> dict:
     """:func:`run_case` in a forked child, killed after ``limit_s`` seconds (``{"skipped": ...}``)."""
     ctx = mp.get_context("fork")
     a, b = ctx.Pipe(duplex=False)
-    proc = ctx.Process(target=_child, args=(b, p, accuracy, max_facets, extrapolate))
+    proc = ctx.Process(target=_child, args=(b, p, accuracy, max_facets, extrapolate, basis))
     proc.start()
     b.close()
     res: dict | None = None
@@ -450,15 +508,15 @@ def fmt_r(t: float, base: float) -> str:
 
 def scene_table(name: str, cases: list[dict], mit: list, ours_md: list, curve: list[dict]) -> list[str]:
     out = [
-        "| requested | estimated | actual vs finer (max) | vs Mitsuba, debiased (raw) | leaves | time "
+        "| requested | basis | estimated | actual vs finer (max) | vs Mitsuba, debiased (raw) | leaves | time "
         "| uniform at equal error | uniform reaching the request "
         "| ours k=1..4 at equal error (md) | Mitsuba at equal error | Mitsuba at the requested error | note |",
-        "|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|",
+        "|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|",
     ]
     for c in cases:
         if "skipped" in c or "error" in c:
             why = c.get("skipped") or c["error"].strip().splitlines()[-1]
-            out.append(f"| {c['accuracy']:g} | – | – | – | – | – | – | – | – | – | – | skipped: {why} |")
+            out.append(f"| {c['accuracy']:g} | – | – | – | – | – | – | – | – | – | – | – | skipped: {why} |")
             continue
         m = c["m"]
         target = m["vs_finer"]
@@ -473,7 +531,8 @@ def scene_table(name: str, cases: list[dict], mit: list, ours_md: list, curve: l
         if m["facets_under"]:
             note.append(f"{m['facets_under']} facets above their estimate")
         out.append(
-            f"| {c['accuracy']:g} | {fmt_e(c['estimated'])} | {fmt_e(m['vs_finer'])} ({fmt_e(m['vs_finer_max'])}) "
+            f"| {c['accuracy']:g} | {c.get('degree', 0)} | {fmt_e(c['estimated'])} "
+            f"| {fmt_e(m['vs_finer'])} ({fmt_e(m['vs_finer_max'])}) "
             f"| {fmt_e(m['vs_mitsuba_debiased'])} ({fmt_e(m['vs_mitsuba'])}) | {c['leaves']} | {fmt_t(c['seconds'])} "
             f"| {fmt_t(t_uni)} {k_uni}{fmt_r(t_uni, c['seconds'])} "
             f"| {fmt_t(t_req)} {k_req}{fmt_r(t_req, c['seconds'])} "
@@ -656,13 +715,20 @@ def finer_summary(ref: dict, finer: dict) -> dict:
     mit = {key: rel_errors(finer[key], ref["irradiance"]) for key in ("E_k", "rich1", "richp")}
     mit["E_j"] = rel_errors(finer["E"][0], ref["irradiance"])
     mit["E_m"] = rel_errors(finer["E"][1], ref["irradiance"])
-    return {
+    quad = finer.get("quadratic")
+    out = {
         "levels": list(finer["levels"]),
         "order": finer["order"],
         "seconds": finer["seconds"],
         "vs_mitsuba": mit,
         "richp_vs_E_k": rel_errors(finer["E_k"], finer["richp"]),
     }
+    if quad is not None:
+        out["quadratic"] = {"k": quad["k"], "seconds": quad["seconds"],
+                            "vs_mitsuba": rel_errors(quad["E"], ref["irradiance"]),
+                            "vs_back": rel_errors(quad["E_back"], quad["E"]),
+                            "richp_vs_quadratic": rel_errors(finer["richp"], quad["E"])}
+    return out
 
 
 def remeasure(results: dict, a: argparse.Namespace) -> None:
@@ -674,7 +740,8 @@ def remeasure(results: dict, a: argparse.Namespace) -> None:
     for names in groups.values():
         refs = {n: mr.load_reference(n) for n in names}
         ps = {n: problem(refs[n]) for n in names}
-        finers = {n: finer_solution(n, ps[n], a.finer_facets, siblings=ps) for n in names}
+        finers = {n: with_reference(finer_solution(n, ps[n], a.finer_facets, siblings=ps),
+                                    quadratic_reference(n, ps[n], siblings=ps)) for n in names}
         for n in names:
             sib = {m: (ps[m], finers[m]) for m in names}
             results[n]["uniform"] = uniform_curve(n, ps[n], finers[n], a.uniform_facets, siblings=sib)
@@ -695,10 +762,13 @@ def run_group(names: Sequence[str], accs: Sequence[float], a: argparse.Namespace
     finers = {}
     for n in names:
         t0 = time.perf_counter()
-        finers[n] = finer_solution(n, ps[n], a.finer_facets, siblings=ps)
+        finers[n] = with_reference(finer_solution(n, ps[n], a.finer_facets, siblings=ps),
+                                   quadratic_reference(n, ps[n], siblings=ps))
+        quad = finers[n]["quadratic"]
         log(
-            f"{n}: finer solution j, m, k = {finers[n]['levels']}, order {finers[n]['order']:.2f} "
-            f"({time.perf_counter() - t0:.1f} s)"
+            f"{n}: finer solution j, m, k = {finers[n]['levels']}, order {finers[n]['order']:.2f}"
+            + (f"; quadratic reference k = {quad['k']}" if quad else "; no quadratic reference (rough light)")
+            + f" ({time.perf_counter() - t0:.1f} s)"
         )
     curves = {}
     for n in names:
@@ -714,7 +784,7 @@ def run_group(names: Sequence[str], accs: Sequence[float], a: argparse.Namespace
         if len(mine) < len(accs):
             log(f"  {n}: requests {[x for x in accs if x not in mine]} left out (SCENE_ACC)")
         for acc in mine:
-            c = run_case_limited(p, acc, a.max_facets, a.limit, not a.last_level)
+            c = run_case_limited(p, acc, a.max_facets, a.limit, not a.last_level, a.basis)
             if "irradiance" in c:
                 c["m"] = measure(c, ref, finer)
                 log(
@@ -743,16 +813,19 @@ def write(results: dict, a: argparse.Namespace, suffix: str, wall: float, starte
     md = [
         "# Accuracy as an input",
         "",
-        f"Generated by `python -m benchmarks.accuracy{' --quick' if a.quick else ''}` on {platform.node()} "
+        f"Generated by `python -m benchmarks.accuracy{' --quick' if a.quick else ''}"
+        f"{'' if a.basis == 'auto' else ' --basis ' + a.basis}` on {platform.node()} "
         f"({os.cpu_count()} CPUs, torch {torch.__version__}, {torch.get_num_threads()} thread(s), "
         f"OMP_WAIT_POLICY={os.environ.get('OMP_WAIT_POLICY')}), {wall / 60:.1f} min.",
         "",
         "`ti.render(scene, reflectance, light, illuminant, accuracy=a, wavelengths=[550 nm], "
         f"max_facets={a.max_facets})` on the grey reference scenes (float64). Per-facet relative errors of the "
-        "irradiance: *actual vs finer* is against our own model solved much finer (uniform `subdivide(k)` of the "
-        f"scene split at contacts, its `F` pieces with `F k² ≤ {a.finer_facets}`, form-factor tol 1e-6, "
-        "extrapolated with a fitted convergence order, see "
-        "below); *vs Mitsuba* is against the cached Mitsuba 3 reference, with its noise taken out in quadrature "
+        "irradiance: *actual vs finer* is against our own model solved much finer: where the light is smooth over "
+        "every piece, on the quadratic basis on a uniform `subdivide(k)` of the scene split at contacts "
+        f"(`6 F k² ≤ {QUADRATIC_UNKNOWNS}` unknowns, tol 1e-8); elsewhere (the sky-lit scenes) on the constant "
+        f"basis, `F k² ≤ {a.finer_facets}`, form-factor tol 1e-6, extrapolated with a fitted convergence order (see "
+        f"below). *basis*: the `render(basis={a.basis!r})` choice per case (2: quadratic, 0: constant). "
+        "*vs Mitsuba* is against the cached Mitsuba 3 reference, with its noise taken out in quadrature "
         "(raw in brackets). *time* is the wall time of the `render` call (each case in a forked child, after an "
         f"untimed render of the same scene at accuracy={WARM_ACCURACY:g} there, the faster of two calls under "
         f"{BEST_OF_TWO_S:g} s, as for the uniform curves; limit {a.limit:.0f} s). "
@@ -789,6 +862,7 @@ def write(results: dict, a: argparse.Namespace, suffix: str, wall: float, starte
         "| fitted vs E_k | time |",
         "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
     ]
+    quad_rows = []
     for name, r in results.items():
         f = r["finer"]
         n = r["noise"]
@@ -804,7 +878,19 @@ def write(results: dict, a: argparse.Namespace, suffix: str, wall: float, starte
             f"| {e(v['E_k'])} | {e(v['rich1'])} | {e(v['richp'])} | {fmt_e(f['richp_vs_E_k'][0])} "
             f"| {fmt_t(f['seconds'])} |"
         )
+        q = f.get("quadratic")
+        if q:
+            quad_rows.append(f"| {name} | {q['k']} | {pieces * q['k'] ** 2} | {e(q['vs_mitsuba'])} "
+                             f"| {fmt_e(q['vs_back'][0])} | {fmt_e(q['richp_vs_quadratic'][0])} "
+                             f"| {fmt_t(q['seconds'])} |")
     md += ["", FINER_NOTE]
+    if quad_rows:
+        md += ["", "The quadratic reference (the *finer solution* where the light is smooth): the quadratic basis on "
+               "`subdivide(k)` of the scene split at contacts; *k − 1 vs k* is the change from the level before "
+               "(its own convergence), *constant-basis extrapolation vs it* how far the fitted-order extrapolation "
+               "above is from it.", "",
+               "| scene | k | pieces | vs Mitsuba, debiased (raw) | k − 1 vs k | constant-basis extrapolation vs it "
+               "| time |", "|---|---:|---:|---:|---:|---:|---:|", *quad_rows]
     for name, r in results.items():
         mit, ours_md = md_curves(name, md_rows, r["noise"])
         md += [
@@ -867,6 +953,8 @@ def main(argv: Sequence[str] | None = None) -> None:
     ap.add_argument("--uniform-facets", type=int, default=5_000, help="facet cap of the uniform timing curve")
     ap.add_argument("--limit", type=float, default=300.0, help="seconds per render before it is skipped")
     ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--basis", choices=["auto", "constant", "quadratic"], default="auto",
+                    help="render(basis=...) (suffix _constant / _quadratic when not auto)")
     ap.add_argument("--last-level", action="store_true",
                     help="render(extrapolate=False): the last refinement level alone (suffix _last_level)")
     ap.add_argument(
@@ -880,7 +968,8 @@ def main(argv: Sequence[str] | None = None) -> None:
     torch.set_grad_enabled(False)
     names = a.scenes or (QUICK_SCENES if a.quick else FULL_SCENES)
     accs = a.accuracies or (QUICK_ACC if a.quick else FULL_ACC)
-    suffix = ("_quick" if a.quick else "") + ("_last_level" if a.last_level else "")
+    suffix = ("_quick" if a.quick else "") + ("_last_level" if a.last_level else "") + (
+        f"_{a.basis}" if a.basis != "auto" else "")
     t_start = time.perf_counter()
     started = time.time()
     if a.from_json:
@@ -900,7 +989,7 @@ def main(argv: Sequence[str] | None = None) -> None:
 
     # warm-up: the first calls load the ray tracer and set up caches
     w = problem(mr.load_reference("box_corner_sun_r2"))
-    run_case(w, 2e-2)
+    run_case(w, 2e-2, basis=a.basis)
     groups: dict[str, list[str]] = {}
     for name in names:
         groups.setdefault(geometry_key(mr.load_reference(name)), []).append(name)

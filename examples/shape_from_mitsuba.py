@@ -78,8 +78,9 @@ def refinement(build, x: torch.Tensor, meta: dict, accuracy: float):
     scene, r = build(x.detach(), meta)
     d = torch.tensor(meta["light"]["direction"], dtype=F64)
     rr = r.reshape(1, 1).expand(scene.num_facets, 1)
+    # the constant basis: its leaves follow the shape (Plan.for_geometry) and pass gradients to it
     return ti.accuracy.plan(scene, rr, d, torch.ones(1, dtype=F64), accuracy=accuracy,
-                            wavelengths=torch.tensor([550.0], dtype=F64))
+                            wavelengths=torch.tensor([550.0], dtype=F64), basis="constant")
 
 
 def fit(build, start: list[float], observed: torch.Tensor, meta: dict, bounces: int | None, steps: int,

@@ -128,7 +128,7 @@ STAGES = [
     ("errors", "_checks", "_unique", "_sparse", "_version", "_deprecation"),
     ("geometry",),
     ("formfactors",),
-    ("lights", "spectral"),
+    ("lights", "light_moments", "spectral"),
     ("solver",),
     ("camera",),
     ("accuracy",),

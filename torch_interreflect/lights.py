@@ -52,7 +52,8 @@ from .geometry.raycast import RayCaster
 from .geometry.scene import Scene
 from .geometry.shadows import shadow_segments
 
-__all__ = ["back_coverage", "directional", "light_geometry", "lit_fraction", "sky", "sun_direction", "uniform"]
+__all__ = ["back_coverage", "directional", "light_geometry", "lit_fraction", "shadow_candidates", "sky",
+           "sun_direction", "uniform"]
 
 
 def _detached_cpu(scene: Scene) -> Scene:
@@ -72,7 +73,7 @@ def _check_spd(spd: Tensor, name: str) -> Tensor:
     return spd
 
 
-def _shadowed_candidates(scene: Scene, direction: Tensor, shadows: Literal["auto"] | bool) -> Tensor:
+def shadow_candidates(scene: Scene, direction: Tensor, shadows: Literal["auto"] | bool) -> Tensor:
     """Lit facets (int64 ``[K]``) that cast shadow rays: with ``shadows="auto"`` only those with another facet in
     front of them."""
     d = torch.as_tensor(direction, dtype=torch.float64).detach().cpu().reshape(-1)
@@ -113,7 +114,7 @@ def lit_fraction(
     frac = (cos > 0).to(torch.float64)
     if shadows is False:
         return frac.to(scene.dtype).to(scene.device)
-    idx = _shadowed_candidates(scene, d, shadows)
+    idx = shadow_candidates(scene, d, shadows)
     if idx.numel():
         n = int(shadow_samples)
         g = (torch.arange(n, dtype=torch.float64) + 0.5) / n
@@ -257,7 +258,7 @@ def directional(
     lit = lit_fraction(scene, d, shadows=shadows, shadow_samples=shadow_samples).to(spd.dtype).to(spd.device)
     if shadows is not False and torch.is_grad_enabled() and (scene.corners.requires_grad or d.requires_grad):
         # the shadows' edges moving with the geometry and the direction: zero in value (sun_shadow_gradient)
-        facets = _shadowed_candidates(scene, d, shadows)
+        facets = shadow_candidates(scene, d, shadows)
         lit = lit + sun_shadow_gradient(scene, d, facets).to(spd.dtype).to(spd.device)
     dn = d.reshape(3).to(spd.dtype).to(spd.device)
     dn = dn / dn.norm()

@@ -1,5 +1,7 @@
-"""ti.render(accuracy=...): error estimate against finer solutions, layout and power, sparsification, bounces,
-wavelength reduction, gradients and the errors/warnings for unreachable targets."""
+"""render(accuracy=...) on the constant basis (``basis="constant"``: refinement, extrapolation, sparsification,
+bounces, wavelength reduction): error estimate against finer solutions, layout and power, gradients and the
+errors/warnings for unreachable targets. The quadratic basis (the default where it applies) has its own tests in
+``test_render_quadratic.py``."""
 
 from __future__ import annotations
 
@@ -11,12 +13,23 @@ import pytest
 import torch
 
 import torch_interreflect as ti
-from torch_interreflect.accuracy import plan
+from torch_interreflect.accuracy import plan as _plan
 from torch_interreflect.errors import AccuracyWarning, ShapeError, ValueRangeError
 
 D = torch.float64
 ONE = torch.ones(1, dtype=D)
 WL = torch.tensor([550.0], dtype=D)
+
+
+def render(*args, **kwargs):
+    """``ti.render`` on the constant basis, whose refinement and settings these tests are about."""
+    kwargs.setdefault("basis", "constant")
+    return ti.render(*args, **kwargs)
+
+
+def plan(*args, **kwargs):
+    kwargs.setdefault("basis", "constant")
+    return _plan(*args, **kwargs)
 
 
 def _grey(scene: ti.Scene, r: float, dtype: torch.dtype = D) -> torch.Tensor:
@@ -58,7 +71,7 @@ def _rel_rms(x: torch.Tensor, ref: torch.Tensor) -> float:
 
 @pytest.mark.parametrize("accuracy", [3e-2, 1e-2])
 def test_error_stays_below_the_request_and_the_estimate_is_honest(groove, groove_reference, accuracy):
-    out = ti.render(groove, _grey(groove, 0.8), "uniform", ONE, wavelengths=WL, accuracy=accuracy)
+    out = render(groove, _grey(groove, 0.8), "uniform", ONE, wavelengths=WL, accuracy=accuracy)
     actual = _rel_rms(out.irradiance[:, 0], groove_reference)
     rep = out.report
     assert rep.reached and rep.estimated <= accuracy
@@ -73,8 +86,8 @@ def test_error_stays_below_the_request_and_the_estimate_is_honest(groove, groove
 
 
 def test_tighter_accuracy_does_more_work_and_gets_closer(groove, groove_reference):
-    a = ti.render(groove, _grey(groove, 0.8), "uniform", ONE, wavelengths=WL, accuracy=3e-2)
-    b = ti.render(groove, _grey(groove, 0.8), "uniform", ONE, wavelengths=WL, accuracy=5e-3)
+    a = render(groove, _grey(groove, 0.8), "uniform", ONE, wavelengths=WL, accuracy=3e-2)
+    b = render(groove, _grey(groove, 0.8), "uniform", ONE, wavelengths=WL, accuracy=5e-3)
     assert b.report.leaves > a.report.leaves
     assert _rel_rms(b.irradiance[:, 0], groove_reference) < _rel_rms(a.irradiance[:, 0], groove_reference)
 
@@ -82,7 +95,7 @@ def test_tighter_accuracy_does_more_work_and_gets_closer(groove, groove_referenc
 def test_closed_box_is_exact_at_any_refinement():
     # uniform E0 and reflectance in a closed box: E = E0 / (1 - r) exactly, whatever the discretisation
     box = ti.scenes.closed_box(divisions=2, dtype=D)
-    out = ti.render(box, _grey(box, 0.7), "uniform", ONE, wavelengths=WL, accuracy=1e-3)
+    out = render(box, _grey(box, 0.7), "uniform", ONE, wavelengths=WL, accuracy=1e-3)
     # what is left is the form factors' closure error (rows sum to 1 + 5.9e-7 at the planned quadrature tolerance,
     # amplified by 1 / (1 - r)): measured 1.38e-6
     torch.testing.assert_close(out.irradiance, torch.full_like(out.irradiance, 1 / 0.3), rtol=2e-6, atol=0)
@@ -156,7 +169,7 @@ def test_sparsified_kernel_stays_within_its_bound():
 
 
 def test_dark_scene_uses_the_bounce_series_within_its_bound(groove):
-    out = ti.render(groove, _grey(groove, 0.2), "uniform", ONE, wavelengths=WL, accuracy=1e-2)
+    out = render(groove, _grey(groove, 0.2), "uniform", ONE, wavelengths=WL, accuracy=1e-2)
     rep = out.report
     assert rep.method == "series" and rep.bounces is not None and rep.bounces >= 2
     # the series on the same leaves against the exact solve of the same leaves
@@ -169,7 +182,7 @@ def test_dark_scene_uses_the_bounce_series_within_its_bound(groove):
 
 
 def test_bright_scene_uses_conjugate_gradients(groove):
-    rep = ti.render(groove, _grey(groove, 0.95), "uniform", ONE, wavelengths=WL, accuracy=1e-2).report
+    rep = render(groove, _grey(groove, 0.95), "uniform", ONE, wavelengths=WL, accuracy=1e-2).report
     assert rep.method == "cg" and rep.bounces is None
 
 
@@ -199,9 +212,9 @@ def test_gradients_reach_reflectance_and_illuminant(groove):
 
 
 def test_float32_matches_float64(groove):
-    a = ti.render(groove, _grey(groove, 0.8), "uniform", ONE, wavelengths=WL, accuracy=2e-2).irradiance
+    a = render(groove, _grey(groove, 0.8), "uniform", ONE, wavelengths=WL, accuracy=2e-2).irradiance
     g32 = groove.to(torch.float32)
-    b = ti.render(g32, _grey(g32, 0.8, torch.float32), "uniform", ONE.float(), wavelengths=WL.float(), accuracy=2e-2)
+    b = render(g32, _grey(g32, 0.8, torch.float32), "uniform", ONE.float(), wavelengths=WL.float(), accuracy=2e-2)
     assert b.irradiance.dtype == torch.float32 and b.report.reached
     # both are within 2e-2 of the truth, so within 4e-2 of each other (refinement choices may differ)
     assert _rel_rms(b.irradiance.double()[:, 0], a[:, 0]) <= 4e-2
@@ -210,16 +223,16 @@ def test_float32_matches_float64(groove):
 def test_accuracy_below_what_the_dtype_resolves_is_an_error(groove):
     g32 = groove.to(torch.float32)
     with pytest.raises(ValueRangeError, match="float32"):
-        ti.render(g32, _grey(g32, 0.5, torch.float32), accuracy=1e-6)
+        render(g32, _grey(g32, 0.5, torch.float32), accuracy=1e-6)
     for bad in (0.0, -1e-2, 0.7, math.nan, True):
         with pytest.raises(ValueRangeError):
-            ti.render(groove, _grey(groove, 0.5), accuracy=bad)
+            render(groove, _grey(groove, 0.5), accuracy=bad)
 
 
 def test_unreachable_accuracy_warns_and_says_so(groove):
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        out = ti.render(groove, _grey(groove, 0.9), "uniform", ONE, wavelengths=WL, accuracy=1e-4, max_facets=200)
+        out = render(groove, _grey(groove, 0.9), "uniform", ONE, wavelengths=WL, accuracy=1e-4, max_facets=200)
     assert any(issubclass(w.category, AccuracyWarning) and "max_facets=200" in str(w.message) for w in caught)
     assert not out.report.reached and out.report.estimated > 1e-4
     assert out.report.leaves <= 200
@@ -227,13 +240,13 @@ def test_unreachable_accuracy_warns_and_says_so(groove):
 
 def test_bad_shapes(groove):
     with pytest.raises(ShapeError, match="reflectance"):
-        ti.render(groove, torch.full((5,), 0.5, dtype=D), accuracy=1e-2)
+        render(groove, torch.full((5,), 0.5, dtype=D), accuracy=1e-2)
     with pytest.raises(ShapeError, match="illuminant"):
-        ti.render(groove, _grey(groove, 0.5), "uniform", torch.ones(3, dtype=D), wavelengths=WL, accuracy=1e-2)
+        render(groove, _grey(groove, 0.5), "uniform", torch.ones(3, dtype=D), wavelengths=WL, accuracy=1e-2)
     with pytest.raises(ValueRangeError, match=r"\[0, 1\]"):
-        ti.render(groove, _grey(groove, 1.5), accuracy=1e-2)
+        render(groove, _grey(groove, 1.5), accuracy=1e-2)
     with pytest.raises(TypeError):
-        ti.render("groove", _grey(groove, 0.5))  # type: ignore[arg-type]
+        render("groove", _grey(groove, 0.5))  # type: ignore[arg-type]
 
 
 def test_layer_with_accuracy_keeps_the_scene_facets_and_meets_the_target():
@@ -246,7 +259,7 @@ def test_layer_with_accuracy_keeps_the_scene_facets_and_meets_the_target():
     rgb = layer(r, d65)
     assert rgb.shape == (2, 8, 3)
     cam = ti.Camera.from_colour("Nikon 5100 (NPL)", wl).to(D)
-    ref = ti.render(scene, r[0].detach(), "uniform", d65, cam, accuracy=3e-3).rgb
+    ref = render(scene, r[0].detach(), "uniform", d65, cam, accuracy=3e-3).rgb
     assert _rel_rms(rgb[0].detach(), ref) <= 2e-2 + 3e-3
     rgb.sum().backward()
     assert r.grad is not None and bool(torch.isfinite(r.grad).all()) and float(r.grad.abs().min()) > 0
@@ -270,7 +283,7 @@ def test_occluded_scene_under_a_sky_warns_or_bounds_the_error():
     level = torch.full((1,), spec["light"]["radiance"], dtype=D)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        out = ti.render(
+        out = render(
             scene, _grey(scene, spec["reflectance"]), "sky", level, wavelengths=WL, accuracy=1e-2, max_facets=240
         )
     warned = any(issubclass(w.category, AccuracyWarning) for w in caught)
@@ -289,7 +302,7 @@ def test_render_with_a_view_returns_the_gathered_image():
     wl = torch.tensor([500.0, 600.0], dtype=torch.float64)
     view = ti.View((0.5, 0.2, 0.5), (0.5, 0.8, 0.4), up=(0.0, 0.0, 1.0), fov_deg=60.0, height=8, width=10)
     r = 0.6
-    out = ti.render(scene, torch.full((scene.num_facets,), r, dtype=torch.float64), light="uniform",
+    out = render(scene, torch.full((scene.num_facets,), r, dtype=torch.float64), light="uniform",
                     illuminant=torch.tensor([1.0, 2.0], dtype=torch.float64), wavelengths=wl, accuracy=2e-2,
                     view=view, progress=False)
     assert out.image is not None and out.image.shape == (2, 8, 10)
@@ -298,7 +311,7 @@ def test_render_with_a_view_returns_the_gathered_image():
     facet_err = float(((out.radiance - expected) / expected).abs().max())
     image_err = float(((out.image - expected[:, None, None]) / expected[:, None, None]).abs().max())
     assert facet_err < out.report.estimated and image_err <= facet_err + 1e-7  # measured 1.21e-5 vs 1.36e-5
-    flat = ti.render(scene, torch.full((scene.num_facets,), r, dtype=torch.float64), light="uniform",
+    flat = render(scene, torch.full((scene.num_facets,), r, dtype=torch.float64), light="uniform",
                      illuminant=torch.tensor([1.0, 2.0], dtype=torch.float64), wavelengths=wl, accuracy=2e-2,
                      view=view, shading="flat", progress=False)
     flat_err = float(((flat.image - expected[:, None, None]) / expected[:, None, None]).abs().max())
@@ -406,7 +419,7 @@ def test_kept_leaves_keep_their_sky_rays():
 def test_dark_scene_is_not_refined_when_one_solve_meets_the_target(groove):
     """r = 0.2: the a-priori estimate of the solve on the user's facets already meets 1e-2, so no refinement."""
     ref = _uniform_reference(groove, 0.2, "uniform")
-    out = ti.render(groove, _grey(groove, 0.2), "uniform", ONE, wavelengths=WL, accuracy=1e-2)
+    out = render(groove, _grey(groove, 0.2), "uniform", ONE, wavelengths=WL, accuracy=1e-2)
     rep = out.report
     assert rep.iterations == 0 and rep.leaves == groove.num_facets and rep.reached
     actual = _rel_rms(out.irradiance[:, 0], ref)
@@ -437,7 +450,7 @@ def test_a_wavelength_without_light_does_not_break_the_float32_estimate(groove):
     facet cap while the report said reached)."""
     g32 = groove.to(torch.float32)
     wl = torch.tensor([450.0, 550.0, 650.0])
-    out = ti.render(g32, _grey(g32, 0.8, torch.float32), "uniform", torch.tensor([0.0, 1.0, 1.0]), wavelengths=wl,
+    out = render(g32, _grey(g32, 0.8, torch.float32), "uniform", torch.tensor([0.0, 1.0, 1.0]), wavelengths=wl,
                     accuracy=1e-2)
     rep = out.report
     assert math.isfinite(rep.parts["discretisation"]) and rep.reached and rep.leaves <= 100  # measured 80
@@ -505,7 +518,7 @@ def test_the_solvers_closure_warning_is_raised_once_per_render():
     r = 0.99
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        out = ti.render(box, _grey(box, r, torch.float32), "uniform", torch.ones(1), accuracy=2e-2,
+        out = render(box, _grey(box, r, torch.float32), "uniform", torch.ones(1), accuracy=2e-2,
                         wavelengths=WL.float(), progress=False)
     solver = [w for w in caught if issubclass(w.category, AccuracyWarning) and str(w.message).startswith("solve(")]
     assert len(solver) == 1

@@ -18,12 +18,18 @@ from ..camera.rendering import render_view
 from ..camera.sensor import Camera
 from ..camera.view import View
 from ..errors import AccuracyWarning, ShapeError, ValueRangeError
+from ..formfactors.compiled import loops
 from ..formfactors.operator import FormFactors
 from ..formfactors.quadrature import form_factors
 from ..geometry._polygon import bilinear, bilinear_coordinates
+from ..geometry.contacts import split_at_contacts
 from ..geometry.scene import Scene, area_average
+from ..light_moments import light_is_rough
+from ..lights import sun_direction
 from ..solver.api import solve
+from ..solver.moments import DENSE_MAX_UNKNOWNS, solve_moments
 from .leaves import light_factor, rms
+from .moments_plan import DEGREE, moment_quadrature_tol, moment_report, refine_moments, solver_tolerance
 from .refine import AMPLIFICATION, Problem, Refinement, refine
 from .report import AccuracyReport, RenderResult
 from .settings import Settings, budget_for, choose_settings, quadrature_tol_for
@@ -48,6 +54,9 @@ class Plan:
         coarse: Every user facet one split back (its leaves before its own last split), as a plan with the same
             settings (``None`` when the plan did not refine); ``extrapolation [F]``: the coefficient ``c`` of each
             user facet in the extrapolated output ``x + c (x − x_coarse)`` (Richardson; 0 where it is not used).
+        degree: Degree of the polynomial irradiance per leaf (0: constant; 2: ``form_factors`` are
+            :class:`~torch_interreflect.formfactors.moments.MomentFormFactors` and ``light_factor`` the light's
+            moments ``[n, nb]``, :mod:`.moments_plan`).
     """
 
     scene: Scene
@@ -64,6 +73,7 @@ class Plan:
     light: Any = "uniform"
     coarse: Plan | None = None
     extrapolation: Tensor | None = None
+    degree: int = 0
 
     def for_geometry(self, scene: Scene) -> Plan:
         """The same refinement and settings on ``scene``: the user's facets at other positions (same count, kind and
@@ -77,7 +87,10 @@ class Plan:
 
         Raises:
             ShapeError: ``scene`` has other facets than the plan's.
+            ValueError: the plan is on the quadratic basis (its moments are not differentiable in the geometry:
+                plan with ``basis="constant"``).
         """
+        self._check_geometry_fixed()
         if scene.num_facets != self.scene.num_facets or not torch.equal(scene.is_triangle.cpu(),
                                                                           self.scene.is_triangle.cpu()):
             raise ShapeError(f"for_geometry needs the plan's {self.scene.num_facets} facets (same kinds, same order); "
@@ -159,6 +172,14 @@ class Plan:
         return dataclasses.replace(self.coarse, scene=self.scene, grid=self.grid, nodes=self.nodes, light=self.light,
                                    method=self.method, bounces=self.bounces, solver_tol=self.solver_tol)
 
+    def _check_geometry_fixed(self) -> None:
+        if self.degree > 0:
+            raise ValueError(
+                f"this plan solves on a polynomial basis of degree {self.degree}, whose moments are constants of the "
+                "geometry: it cannot follow moved corners or pass gradients to them; plan with basis='constant' "
+                "(render(..., basis='constant')) for gradients to the geometry"
+            )
+
     def _apply_level(
         self, reflectance: Tensor, illuminant: Tensor | str | float, camera: Camera | None, view: View | None,
         shading: str,
@@ -168,12 +189,20 @@ class Plan:
         S, r = spectra(self.grid, illuminant, reflectance, F)
         nodes, user = self.nodes, self.leaf_user
         refl_leaf = r[..., user, :][..., nodes]
-        K, g, areas = self._geometry()
-        e0 = g.to(refl_leaf.dtype)[:, None].expand(-1, refl_leaf.shape[-1])
-        if self.method == "series":
-            h = solve(K, refl_leaf, e0, bounces=self.bounces)
+        if self.degree > 0:
+            light_grad = isinstance(self.light, Tensor) and self.light.requires_grad
+            if torch.is_grad_enabled() and (self.scene.corners.requires_grad or light_grad):
+                self._check_geometry_fixed()
+            K, g, areas = self.form_factors, self.light_factor, self.leaves.areas
+            gl = g.to(refl_leaf.dtype)[:, :, None].expand(-1, -1, refl_leaf.shape[-1])
+            h = solve_moments(K, refl_leaf, gl, tol=self.solver_tol, method=self.method)[..., 0, :]  # type: ignore[arg-type]
         else:
-            h = solve(K, refl_leaf, e0, tol=self.solver_tol, method=self.method)
+            K, g, areas = self._geometry()
+            e0 = g.to(refl_leaf.dtype)[:, None].expand(-1, refl_leaf.shape[-1])
+            if self.method == "series":
+                h = solve(K, refl_leaf, e0, bounces=self.bounces)
+            else:
+                h = solve(K, refl_leaf, e0, tol=self.solver_tol, method=self.method)
         h_full = h @ interp_matrix(self.grid[nodes], self.grid).to(h.dtype) if nodes.numel() < L else h
         E_leaf = S[..., None, :] * h_full
         E = area_average(E_leaf, user, areas, F)
@@ -241,10 +270,12 @@ def plan(
     max_iterations: int = 12,
     extrapolate: bool = True,
     progress: bool | None = None,
+    basis: str = "auto",
 ) -> Plan:
     """Choose the refinement and settings that reach ``accuracy`` for this reflectance and light.
 
-    Same arguments as :func:`render` (which is ``plan(...).apply(...)``). Nothing here is differentiated.
+    Same arguments as :func:`render` (which is ``plan(...).apply(...)``), ``basis`` included. Nothing here is
+    differentiated.
 
     Returns:
         A :class:`Plan`.
@@ -258,8 +289,11 @@ def plan(
     """
     t_start = time.perf_counter()
     _check_request(scene, accuracy, max_facets)
-    pb = _problem(scene, reflectance, light, illuminant, camera, accuracy, wavelengths, extrapolate)
+    quadratic = _quadratic(basis, scene, light)
+    pb = _problem(scene, reflectance, light, illuminant, camera, accuracy, wavelengths, extrapolate and not quadratic)
     show = progress if progress is not None else scene.num_facets >= 2000 or accuracy < 3e-3
+    if quadratic:
+        return _plan_quadratic(pb, light, max_facets, max_iterations, show, t_start)
     with warnings.catch_warnings():
         # the planning solves (each level, the a-priori estimate) would each repeat the solver's closure-error
         # warning of the same form factors; the solve of the chosen plan (Plan.apply) raises it once
@@ -301,6 +335,48 @@ def plan(
         coarse,
         coef,
     )
+
+
+def _quadratic(basis: str, scene: Scene, light: Any) -> bool:
+    """Whether to plan on the quadratic basis: ``basis="quadratic"``, or ``"auto"`` unless gradients must reach the
+    geometry (corners or a light direction that require grad: the moments are constants of the geometry), the
+    compiled loops are off, or the light is rough over some facet of the scene split at contacts (a sun's shadow
+    edge, a sky or area light through blockable pairs: :func:`~torch_interreflect.light_moments.light_is_rough`),
+    where the quadratic basis's estimate does not hold."""
+    if basis not in ("auto", "constant", "quadratic"):
+        raise ValueError(f"basis must be 'auto', 'constant' or 'quadratic'; got {basis!r}")
+    if basis != "auto":
+        return basis == "quadratic"
+    light_grad = isinstance(light, Tensor) and light.requires_grad
+    if scene.corners.requires_grad or light_grad or loops("moments") is None:
+        return False
+    is_sun = sun_direction(light, scene.num_facets) is not None  # on the user's facets, not the pieces' count
+    return not light_is_rough(split_at_contacts(scene)[0], light, direction=is_sun)
+
+
+def _plan_quadratic(pb: Problem, light: Any, max_facets: int, max_iterations: int, show: bool,
+                    t_start: float) -> Plan:
+    """:func:`plan` on the quadratic basis (:mod:`.moments_plan`)."""
+    pb.quadrature_tol = moment_quadrature_tol(pb.accuracy)
+    st = refine_moments(pb, max_unknowns=max_facets, max_iterations=max_iterations, show=show, t_start=t_start)
+    n = st.leaves.scene.num_facets
+    method = "dense" if 6 * n <= DENSE_MAX_UNKNOWNS else "cg"
+    tol = solver_tolerance(pb.accuracy)
+    report = moment_report(pb, st, method, tol, t_start)
+    if st.rough is not None and bool(st.rough.any()):
+        warnings.warn(
+            f"render(basis='quadratic'): the light is rough over {int(st.rough.sum())} user facets (a shadow edge "
+            "crosses a leaf, or a sky or area light reaches it through blockable pairs), where the quadratic basis's "
+            "estimate can be far under the actual error; basis='auto' plans such scenes on the constant basis",
+            AccuracyWarning, stacklevel=3)
+    if not report.reached:
+        why = st.reason or _over_budget(report)
+        warnings.warn(
+            f"render: requested accuracy {pb.accuracy:.3g} not reached; estimated {report.estimated:.3g} on the "
+            f"quadratic basis after {st.iterations} refinements ({n} leaves), stopped by {why}. Raise max_facets / "
+            "max_iterations or ask for less.", AccuracyWarning, stacklevel=3)
+    return Plan(pb.scene, st.leaves.scene, st.leaves.user, st.K, st.g, pb.grid,  # type: ignore[arg-type]
+                torch.arange(pb.grid.numel(), device=pb.grid.device), method, None, tol, report, light, degree=DEGREE)
 
 
 def _over_budget(report: AccuracyReport) -> str:

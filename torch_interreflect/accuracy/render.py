@@ -77,6 +77,7 @@ def render(
     progress: bool | None = None,
     view: View | None = None,
     shading: str = "gather",
+    basis: str = "auto",
 ) -> RenderResult:
     """Irradiance (and camera RGB) of a scene, computed to a requested relative accuracy.
 
@@ -109,6 +110,10 @@ def render(
         view: A pinhole view (:class:`~torch_interreflect.camera.View`): also return ``image``, shaded per pixel by a
             final gather from the solved (refined) facets (:meth:`Plan.apply`).
         shading: ``"gather"`` (default) or ``"flat"`` (each solved facet one colour) for ``image``.
+        basis: Irradiance inside every leaf: ``"quadratic"`` (a polynomial of degree 2, Galerkin moments,
+            :mod:`.moments_plan`), ``"constant"`` (one value per leaf, refined and extrapolated as described in the
+            module docstring), or ``"auto"`` (default): quadratic, except where gradients must reach the geometry
+            (the scene's corners or a light direction require grad), which only the constant basis passes.
 
     Returns:
         A :class:`RenderResult`: ``irradiance``, ``radiance``, ``rgb``, ``image`` (with a ``view``) and the
@@ -129,9 +134,12 @@ def render(
     Example:
         >>> import torch, torch_interreflect as ti
         >>> scene = ti.scenes.v_groove(45.0, divisions=4, dtype=torch.float64)
-        >>> out = ti.render(scene, torch.full((32,), 0.8, dtype=torch.float64), light="uniform", accuracy=1e-2)
-        >>> out.irradiance.shape, out.report.estimated <= 1e-2, out.report.leaves > 32
-        (torch.Size([32, 31]), True, True)
+        >>> out = ti.render(scene, torch.full((32,), 0.8, dtype=torch.float64), light="uniform", accuracy=1e-3)
+        >>> out.irradiance.shape, out.report.estimated <= 1e-3, out.report.degree   # quadratic basis
+        (torch.Size([32, 31]), True, 2)
+        >>> old = ti.render(scene, torch.full((32,), 0.8, dtype=torch.float64), accuracy=1e-2, basis="constant")
+        >>> old.report.degree, old.report.leaves > 32                                # refined constant leaves
+        (0, True)
     """
     p = plan(
         scene,
@@ -145,5 +153,6 @@ def render(
         max_iterations=max_iterations,
         extrapolate=extrapolate,
         progress=progress,
+        basis=basis,
     )
     return p.apply(reflectance, illuminant, camera, view=view, shading=shading)

@@ -38,6 +38,8 @@ class AccuracyReport:
         history: Per refinement step: leaves, estimated discretisation error, seconds.
         extrapolated: Whether the outputs are extrapolated against each facet one split back (the coarse level is
             solved too; :attr:`Plan.extrapolation`).
+        degree: Degree of the polynomial irradiance inside every leaf (0: one constant per leaf; 2: the quadratic
+            basis of :mod:`torch_interreflect.accuracy.moments_plan`).
     """
 
     requested: float
@@ -61,6 +63,7 @@ class AccuracyReport:
     seconds: dict[str, float] = field(default_factory=dict)
     history: list[dict[str, float]] = field(default_factory=list)
     extrapolated: bool = False
+    degree: int = 0
 
     @property
     def form_factor_tol(self) -> float:
@@ -75,10 +78,11 @@ class AccuracyReport:
 
     def __str__(self) -> str:
         solver = f"{self.bounces} bounces" if self.method == "series" else f"{self.method} (tol {self.solver_tol:.1g})"
+        basis = ", quadratic basis" if self.degree == 2 else ""
         return (
             f"accuracy {self.requested:.3g} requested, {self.estimated:.3g} estimated "
             f"({'reached' if self.reached else 'NOT reached'}); {self.leaves} facets solved "
-            f"({self.iterations} refinements), form-factor tol {self.quadrature_tol:.1g}, {solver}, "
+            f"({self.iterations} refinements{basis}), form-factor tol {self.quadrature_tol:.1g}, {solver}, "
             f"{self.wavelengths.numel()} wavelengths, {self.seconds.get('total', 0.0):.2f} s"
         )
 

@@ -6,6 +6,8 @@
   their adjoints; :mod:`.fused_points`: the compiled point-to-polygon factors of the final gather;
   :mod:`.compiled`: loading and launching the numba loops (``_numba_*`` modules).
 - :mod:`.contour`: :func:`point_polygon_factor`; :mod:`.rules`: quadrature rules and orders.
+- :mod:`.basis` (:func:`facet_basis`: a polynomial basis per facet) and :mod:`.moments`
+  (:func:`moment_form_factors`: the Galerkin moments on it; compiled loops in ``_numba_moments``).
 - :mod:`.visibility`: occlusion by Embree rays (jittered per-point samples); :mod:`.hemisphere`: the hemisphere
   fractions of the sky; :mod:`.sampling`: their low-discrepancy samples; :mod:`.montecarlo`: the paper's estimator.
 - :mod:`.hierarchical`: :func:`hierarchical_form_factors` for large scenes (the builder), with
@@ -13,16 +15,22 @@
   traversal) and :mod:`.cluster_visibility` (visible fraction of far blocks).
 """
 
+from .basis import FacetBasis, facet_basis
 from .contour import point_polygon_factor
 from .hierarchical import HierarchicalFormFactors, hierarchical_form_factors
+from .moments import MomentFormFactors, moment_form_factors
 from .operator import FormFactorOperator, FormFactors
 from .quadrature import form_factors
 
 __all__ = [
+    "FacetBasis",
     "FormFactorOperator",
     "FormFactors",
     "HierarchicalFormFactors",
+    "MomentFormFactors",
+    "facet_basis",
     "form_factors",
     "hierarchical_form_factors",
+    "moment_form_factors",
     "point_polygon_factor",
 ]

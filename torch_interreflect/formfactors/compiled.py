@@ -2,7 +2,8 @@
 
 :func:`loops` gives the numba module of a stage (``"quadrature"``: the fused contour sums and their adjoints;
 ``"pairs"``: culling, classification and blocker tests of facet pairs; ``"visibility"``: rays and visible
-fractions of the fixed-grid visibility estimate; ``"shadows"``: the shadow edges of the visibility gradient), or
+fractions of the fixed-grid visibility estimate; ``"shadows"``: the shadow edges of the visibility gradient;
+``"moments"``: the Galerkin moments on a polynomial basis), or
 None when numba is missing or disabled
 (``TI_DISABLE_NUMBA=1``): callers then use their torch path. :func:`launch` runs one loop with
 ``torch.get_num_threads()`` threads.
@@ -22,7 +23,7 @@ import torch
 __all__ = ["launch", "loops"]
 
 _MODULES = {"quadrature": "._numba_kernels", "pairs": "._numba_pairs", "visibility": "._numba_visibility",
-            "shadows": "._numba_shadows"}
+            "shadows": "._numba_shadows", "moments": "._numba_moments"}
 
 #: One compiled launch at a time (numba's workqueue threading layer does not allow concurrent launches).
 _LAUNCH = threading.Lock()
@@ -30,7 +31,8 @@ _LAUNCH = threading.Lock()
 
 @cache
 def loops(stage: str = "quadrature") -> ModuleType | None:
-    """The numba module of ``stage`` (``"quadrature"``, ``"pairs"``, ``"visibility"`` or ``"shadows"``), or None
+    """The numba module of ``stage`` (``"quadrature"``, ``"pairs"``, ``"visibility"``, ``"shadows"`` or
+    ``"moments"``), or None
     when numba is missing or disabled (``TI_DISABLE_NUMBA=1``)."""
     if stage not in _MODULES:
         raise ValueError(f"stage must be one of {sorted(_MODULES)}; got {stage!r}")

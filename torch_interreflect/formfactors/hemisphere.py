@@ -6,6 +6,7 @@ part) and the fraction whose first hit is a facet's back (:func:`~torch_interref
 from __future__ import annotations
 
 import math
+from collections.abc import Iterator
 from typing import Any
 
 import numpy as np
@@ -19,7 +20,45 @@ from ..geometry.scene import Scene
 from .compiled import launch, loops
 from .sampling import KRONECKER_STEP, R2_STEP, pair_seeds
 
-__all__ = ["hemisphere_fractions"]
+__all__ = ["hemisphere_fractions", "hemisphere_point_fractions"]
+
+
+def _hemisphere_hits(scene: Scene, idx: Tensor, samples: int, points: int, escape: bool, back: bool,
+                     caster: Any) -> Iterator[tuple[int, int, np.ndarray, np.ndarray, dict[str, np.ndarray]]]:
+    """Rays of :func:`hemisphere_fractions` in chunks of facets: ``(start, count, origin, area, hits)`` with
+    ``origin [k·P·D, 3]`` (relative to the caster's origin), ``area [k, P]`` the points' area weights and ``hits``
+    the ``"escape"`` / ``"back"`` booleans ``[k·P·D]`` asked for."""
+    check_count(samples, "samples")
+    check_count(points, "points")
+    sc = scene.to(torch.float64).to("cpu")
+    kern = loops("visibility")
+    K, P, D = idx.numel(), points * points, samples * samples
+    normals = sc.normals.detach()
+    t1, t2 = tangent_frame(normals)
+    corners = sc.corners.detach() - torch.as_tensor(caster.origin)
+    per = max(1, (1 << 20) // (P * D))  # about a million rays at a time
+    for s in range(0, K, per):
+        f = idx[s : s + per]
+        k = f.numel()
+        seed = pair_seeds(f, f)
+        origin = np.empty((k * P * D, 3), dtype=np.float32)
+        direction = np.empty((k * P * D, 3), dtype=np.float32)
+        area = np.empty((k, P), dtype=np.float64)
+        args = [t.contiguous().numpy() for t in (corners[f], normals[f], t1[f], t2[f])]
+        if kern is None:
+            _hemisphere_rays_numpy(*args, points, samples, seed.numpy(), caster.eps, origin, direction, area)
+        else:
+            launch(kern.hemisphere_rays, *args, points, samples, seed.numpy(), float(caster.eps), origin, direction,
+                   area)
+        hits: dict[str, np.ndarray] = {}
+        if escape:
+            hits["escape"] = ~caster.occluded(origin, direction, np.full(len(origin), 4.0 * caster.size,
+                                                                         dtype=np.float32))
+        if back:
+            facet = caster.hit_facets(origin, direction)
+            nrm = normals.numpy()[np.maximum(facet, 0)]
+            hits["back"] = (facet >= 0) & ((direction * nrm).sum(-1) > 0)
+        yield s, k, origin, area, hits
 
 
 def hemisphere_fractions(scene: Scene, idx: Tensor, *, samples: int, points: int, escape: bool = True,
@@ -46,47 +85,46 @@ def hemisphere_fractions(scene: Scene, idx: Tensor, *, samples: int, points: int
     Raises:
         ValueRangeError: ``samples`` or ``points`` is not an integer ≥ 1.
     """
-    check_count(samples, "samples")
-    check_count(points, "points")
-    sc = scene.to(torch.float64).to("cpu")
+    caster = caster if caster is not None else RayCaster(scene.to(torch.float64).to("cpu"))
     kern = loops("visibility")
-    caster = caster if caster is not None else RayCaster(sc)
     K, P, D = idx.numel(), points * points, samples * samples
-    out_escape = torch.empty(K, dtype=torch.float64) if escape else None
-    out_back = torch.empty(K, dtype=torch.float64) if back else None
-    normals = sc.normals.detach()
-    t1, t2 = tangent_frame(normals)
-    corners = sc.corners.detach() - torch.as_tensor(caster.origin)
-    per = max(1, (1 << 20) // (P * D))  # about a million rays at a time
-    for s in range(0, K, per):
-        f = idx[s : s + per]
-        k = f.numel()
-        seed = pair_seeds(f, f)
-        origin = np.empty((k * P * D, 3), dtype=np.float32)
-        direction = np.empty((k * P * D, 3), dtype=np.float32)
-        area = np.empty((k, P), dtype=np.float64)
-        args = [t.contiguous().numpy() for t in (corners[f], normals[f], t1[f], t2[f])]
-        if kern is None:
-            _hemisphere_rays_numpy(*args, points, samples, seed.numpy(), caster.eps, origin, direction, area)
-        else:
-            launch(kern.hemisphere_rays, *args, points, samples, seed.numpy(), float(caster.eps), origin, direction,
-                   area)
-        for want, out, flag in ((escape, out_escape, "escape"), (back, out_back, "back")):
-            if not want:
-                continue
-            if flag == "escape":
-                hit = ~caster.occluded(origin, direction, np.full(len(origin), 4.0 * caster.size, dtype=np.float32))
-            else:
-                facet = caster.hit_facets(origin, direction)
-                nrm = normals.numpy()[np.maximum(facet, 0)]
-                hit = (facet >= 0) & ((direction * nrm).sum(-1) > 0)
+    out = {"escape": torch.empty(K, dtype=torch.float64) if escape else None,
+           "back": torch.empty(K, dtype=torch.float64) if back else None}
+    for s, k, _, area, hits in _hemisphere_hits(scene, idx, samples, points, escape, back, caster):
+        for flag, hit in hits.items():
             res = torch.empty(k, dtype=torch.float64)
             if kern is None:
                 res = torch.as_tensor((area * hit.reshape(k, P, D).mean(-1)).sum(-1))
             else:
                 launch(kern.hemisphere_sums, area, hit, D, res.numpy())
-            out[s : s + per] = res
-    return out_escape, out_back
+            out[flag][s : s + k] = res  # type: ignore[index]
+    return out["escape"], out["back"]
+
+
+def hemisphere_point_fractions(scene: Scene, idx: Tensor, *, samples: int, points: int, escape: bool = True,
+                               back: bool = True, caster: Any = None) -> dict[str, Tensor]:
+    """The fractions of :func:`hemisphere_fractions` at each of its points, with the points and their weights
+    (the same rays): for moments of the sky's open part over a facet.
+
+    Returns:
+        ``{"points": [K, P, 3] (m), "weights": [K, P] (area weights summing to 1 per facet), "escape": [K, P],
+        "back": [K, P]}`` (the fractions only where asked for), float64 on the CPU, ``P = points²``.
+    """
+    sc = scene.to(torch.float64).to("cpu")
+    caster = caster if caster is not None else RayCaster(sc)
+    K, P, D = idx.numel(), points * points, samples * samples
+    out = {"points": torch.empty(K, P, 3, dtype=torch.float64), "weights": torch.empty(K, P, dtype=torch.float64)}
+    for flag, want in (("escape", escape), ("back", back)):
+        if want:
+            out[flag] = torch.empty(K, P, dtype=torch.float64)
+    nrm = sc.normals.detach()
+    for s, k, origin, area, hits in _hemisphere_hits(sc, idx, samples, points, escape, back, caster):
+        first = torch.from_numpy(origin.reshape(k, P, D, 3)[:, :, 0].astype(np.float64))
+        out["points"][s : s + k] = first + torch.as_tensor(caster.origin) - caster.eps * nrm[idx[s : s + k], None, :]
+        out["weights"][s : s + k] = torch.from_numpy(area)
+        for flag, hit in hits.items():
+            out[flag][s : s + k] = torch.from_numpy(hit.reshape(k, P, D).mean(-1))
+    return out
 
 
 def _hemisphere_rays_numpy(corners, normals, t1, t2, points, n, seed, eps, origin, direction, area) -> None:

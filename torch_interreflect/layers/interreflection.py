@@ -376,7 +376,8 @@ def _refined(
     n_user = scene.num_facets
     pr = plan_reflectance if plan_reflectance is not None else torch.full((n_user,), 0.9, dtype=scene.dtype)
     cam_plan = Camera(camera.sensitivities.to(scene.dtype), camera.wavelengths.to(scene.dtype))
-    p = plan(scene, pr, light, "D65", cam_plan, accuracy=accuracy, extrapolate=False)  # the layer solves one level
+    # the layer solves one level of the constant basis (its buffers are form factors; gradients reach the geometry)
+    p = plan(scene, pr, light, "D65", cam_plan, accuracy=accuracy, extrapolate=False, basis="constant")
     ff = FormFactors(p.form_factors.matrix, p.form_factors.areas, dict(p.form_factors.info))
     return _Refined(ff, p.light_factor, p.leaf_user, p.bounces, p.method, p.solver_tol, p.report)
 

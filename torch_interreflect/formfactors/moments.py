@@ -1,0 +1,389 @@
+"""Galerkin moments of the kernel on a polynomial basis per facet: the interreflection operator for irradiance that
+varies inside a facet (linearly or quadratically) instead of being one constant per facet.
+
+With the orthonormal basis ``ψ_a`` of every facet (:mod:`.basis`; ``ψ_0 = 1``), irradiance is
+``E(x) = Σ_a c_{i a} ψ_a(x)`` on facet ``i`` and the Galerkin projection of ``E = E0 + K R E`` is
+
+    c = e0 + G R c,      G[(i, a), (j, b)] = (1 / A_i) ∫_i ψ_a(x) ∫_j k(x, y) V(x, y) ψ_b(y) dA_y dA_x
+
+with ``k = cos θ_x cos θ_y / (π r²)``, ``V`` the visibility and ``e0[(i, a)]`` the mean of ``ψ_a E0`` over ``i``
+(:mod:`torch_interreflect.light_moments`). ``G[(i, 0), (j, 0)] = F_ij``: degree 0 is the piecewise-constant model.
+Reciprocity holds blockwise, ``A_i G[(i,a),(j,b)] = A_j G[(j,b),(i,a)]``, so the solver's symmetric positive
+definite form applies with every facet's area repeated over its basis.
+
+The facet averages ``c_{i 0}`` converge much faster with the degree than with refinement: on a 30° V-groove of
+200 facets (r = 0.9, a sun), 1.7 % RMS with constants, 0.24 % with degree 1 and 0.06 % with degree 2 (against an
+extrapolated fine solution; ``benchmarks/results/accuracy.md``).
+
+How each pair is integrated (one unordered pair at a time, the smaller facet outside, reciprocity for the other
+direction; pairs culled and classified as in :func:`~torch_interreflect.formfactors.form_factors`):
+
+- near pairs (centroid distance under :data:`RHO_FAR` facet diameters, or touching, or straddling a plane): an outer
+  Gauss rule on the domain (graded toward a shared edge or vertex; a domain partly behind the target's plane is
+  clipped to it and split in a fan) and, at each point, the inner integral exact in the radius and by
+  Gauss-Legendre in the angle (:mod:`._numba_moments`);
+- far pairs: a product Gauss rule on both facets (the kernel is smooth there);
+- pairs a third facet could block (:func:`~torch_interreflect.formfactors.visibility.blocker_candidates`): the
+  unoccluded moments less their blocked part, estimated at every outer point from jittered stratified Embree rays
+  to the target, scaled so that the sampled kernel matches the exact one.
+
+Not differentiable in the geometry (the moments are computed detached); gradients reach reflectance and light
+through :func:`torch_interreflect.solver.solve_moments`.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+from typing import Any, Literal
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from .._checks import check_count
+from ..errors import ValueRangeError
+from ..geometry._polygon import plane_eps
+from ..geometry.raycast import RayCaster
+from ..geometry.scene import Scene
+from .basis import FacetBasis, basis_size, facet_basis
+from .compiled import launch, loops
+from .operator import FormFactors
+from .pairs import classify_pairs, facing_pairs, order_pairs
+from .rules import order_for, quadrature_rule
+from .visibility import blocker_candidates
+
+__all__ = ["RHO_FAR", "MomentFormFactors", "moment_form_factors"]
+
+#: Pairs whose centroid distance is at least this many (larger) facet diameters, and that neither touch nor
+#: straddle each other's planes, get the product Gauss rule on both facets.
+RHO_FAR = 1.0
+
+#: Far pairs' product rule: the order that :func:`~torch_interreflect.formfactors.rules.order_for` gives for this
+#: many times the quadrature tolerance (measured: the V-groove's solution moves by < 1e-5 against ``1``).
+FAR_TOL_FACTOR = 100.0
+
+#: Rays cast at once (each is ~ 32 bytes in the buffers).
+RAY_CHUNK = 1 << 21
+
+
+def angular_orders(tol: float) -> tuple[int, int]:
+    """Gauss points per panel of the inner angular rule: ``(regular, touching)`` pairs for an entry tolerance
+    ``tol``. Measured on a 30° V-groove of 200 facets against Lambert's formula (quadrature tol 1e-10): 6 points
+    leave 1.1e-7 relative on pairs that do not touch (the outer rule's floor there) and 4.4e-8 on the hinge's
+    pairs, 4 points 1.6e-5 and 2.2e-6."""
+    digits = max(-math.log10(tol), 1.0)
+    regular = int(min(16, max(4, math.ceil(0.8 * digits) + 2)))
+    return regular, regular + 2
+
+
+@dataclass
+class MomentFormFactors:
+    """The Galerkin moment matrix of a scene on a polynomial basis per facet (see the module docstring).
+
+    Attributes:
+        matrix: ``G`` dense ``[F·nb, F·nb]``, rows ``(i, a)`` = ``i·nb + a``, columns likewise (a mean over
+            facet ``i`` per row). ``areas``: facet areas ``[F]`` (m²). ``basis``: the :class:`FacetBasis`.
+        info: What was computed (pairs of each kind, rays, seconds, tolerance).
+
+    Shape:
+        - matrix: ``[F·nb, F·nb]``; areas: ``[F]``
+    """
+
+    matrix: Tensor
+    areas: Tensor
+    basis: FacetBasis
+    info: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def num_facets(self) -> int:
+        return int(self.areas.shape[0])
+
+    @property
+    def degree(self) -> int:
+        return self.basis.degree
+
+    @property
+    def size(self) -> int:
+        """Basis functions per facet (``nb``)."""
+        return self.basis.size
+
+    @property
+    def dtype(self) -> torch.dtype:
+        return self.matrix.dtype
+
+    @property
+    def device(self) -> torch.device:
+        return self.matrix.device
+
+    def constant(self) -> FormFactors:
+        """The degree-0 block: the form factors ``F_ij = G[(i, 0), (j, 0)]`` as :class:`FormFactors`."""
+        nb = self.size
+        info = {k: v for k, v in self.info.items() if not k.startswith("_")}
+        return FormFactors(self.matrix[::nb, ::nb].contiguous(), self.areas, info)
+
+    def truncate(self, degree: int) -> MomentFormFactors:
+        """The same moments on the basis of a lower degree (the basis is hierarchical: the leading blocks)."""
+        nb_new = basis_size(degree)
+        if degree > self.degree:
+            raise ValueRangeError(f"degree must be at most {self.degree} (the moments' own); got {degree}")
+        if degree == self.degree:
+            return self
+        F, nb = self.num_facets, self.size
+        m = self.matrix.reshape(F, nb, F, nb)[:, :nb_new, :, :nb_new].reshape(F * nb_new, F * nb_new).contiguous()
+        b = self.basis
+        basis = FacetBasis(degree, b.centroids, b.axes, b.scale, b.transform[:, :nb_new, :nb_new].contiguous())
+        return MomentFormFactors(m, self.areas, basis, dict(self.info))
+
+    def to(self, *args: Any, **kwargs: Any) -> MomentFormFactors:
+        """Move/cast the matrix and areas like :meth:`torch.Tensor.to` (the basis stays float64 on the CPU)."""
+        return MomentFormFactors(self.matrix.to(*args, **kwargs), self.areas.to(*args, **kwargs), self.basis,
+                                 dict(self.info))
+
+    def __repr__(self) -> str:
+        return (f"MomentFormFactors(num_facets={self.num_facets}, degree={self.degree}, size={self.size}, "
+                f"dtype={self.dtype}, device={self.device})")
+
+
+class _Rules:
+    """Concatenated quadrature rules on the unit square, one id per (kind, order)."""
+
+    def __init__(self) -> None:
+        self.ids: dict[tuple[str, int], int] = {}
+        self.u: list[Tensor] = []
+        self.v: list[Tensor] = []
+        self.w: list[Tensor] = []
+        self.off = [0]
+
+    def id(self, kind: str, n: int) -> int:
+        key = (kind, int(n))
+        if key not in self.ids:
+            u, v, w = quadrature_rule(kind, int(n), torch.float64, torch.device("cpu"))
+            self.ids[key] = len(self.off) - 1
+            self.u.append(u)
+            self.v.append(v)
+            self.w.append(w)
+            self.off.append(self.off[-1] + u.numel())
+        return self.ids[key]
+
+    def arrays(self) -> tuple[np.ndarray, ...]:
+        return (np.asarray(self.off, dtype=np.int64), torch.cat(self.u).numpy(), torch.cat(self.v).numpy(),
+                torch.cat(self.w).numpy())
+
+
+def _on_boundary(points: Tensor, poly: Tensor, tol: Tensor) -> Tensor:
+    """Whether each of ``points [P, 4, 3]`` lies on an edge of ``poly [P, 4, 3]`` (within ``tol [P]``): ``[P, 4]``."""
+    a = poly[:, None, :, :]  # [P, 1, 4, 3] edge starts
+    b = torch.roll(poly, -1, 1)[:, None, :, :]
+    x = points[:, :, None, :]  # [P, 4, 1, 3]
+    d = b - a
+    t = ((x - a) * d).sum(-1) / (d * d).sum(-1).clamp_min(1e-300)
+    foot = a + t.clamp(0, 1)[..., None] * d
+    return ((x - foot).norm(dim=-1) <= tol[:, None, None]).any(-1)
+
+
+def _contacts(sc: Scene, dom: Tensor, tgt: Tensor, touch_edge: Tensor, touch_vertex: Tensor, shift: Tensor,
+              near: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:
+    """Contacts that do not share corners (leaves of unequal refinement, a T-junction): a domain edge lying on an
+    edge of the target (graded toward it), or only a corner lying there (graded toward it); a pair touched only from
+    the target's side is turned around. Returns ``(dom, tgt, touch_edge, touch_vertex, shift, swapped)``."""
+    idx = torch.nonzero(near & ~touch_edge & ~touch_vertex).reshape(-1)
+    swapped = torch.zeros(dom.numel(), dtype=torch.bool)
+    if idx.numel() == 0:
+        return dom, tgt, touch_edge, touch_vertex, shift, swapped
+    cd, ct = sc.corners[dom[idx]], sc.corners[tgt[idx]]
+    tol = 1e-7 * torch.maximum(sc.diameters[dom[idx]], sc.diameters[tgt[idx]])
+    on_d = _on_boundary(cd, ct, tol)  # domain corners on the target's boundary
+    on_t = _on_boundary(ct, cd, tol)
+    dom, tgt, touch_edge, touch_vertex, shift = dom.clone(), tgt.clone(), touch_edge.clone(), touch_vertex.clone(), \
+        shift.clone()
+    for on, swap in ((on_d, False), (on_t, True)):
+        edge_k = on & torch.roll(on, -1, 1) & ((torch.roll(cd if not swap else ct, -1, 1) - (cd if not swap else ct))
+                                               .norm(dim=-1) > tol[:, None])
+        e, v = edge_k.any(1), on.any(1) & ~edge_k.any(1)
+        free = ~touch_edge[idx] & ~touch_vertex[idx]
+        e, v = e & free, v & free & ~e
+        k = torch.where(e, torch.argmax(edge_k.to(torch.int8), 1), torch.argmax(on.to(torch.int8), 1))
+        hit = idx[e | v]
+        if swap:
+            dom[hit], tgt[hit] = tgt[hit], dom[hit].clone()
+            swapped[hit] = True
+        touch_edge[idx[e]] = True
+        touch_vertex[idx[v]] = True
+        shift[hit] = k[e | v]
+    return dom, tgt, touch_edge, touch_vertex, shift, swapped
+
+
+def _kernel() -> Any:
+    kern = loops("moments")
+    if kern is None:
+        raise RuntimeError(
+            "moment_form_factors needs its compiled loops (numba), which are disabled (TI_DISABLE_NUMBA=1) or "
+            "missing; use form_factors (degree 0) instead"
+        )
+    return kern
+
+
+def _pairs(sc: Scene, degree: int, tol: float, eps: float, occlusion: Literal["auto"] | bool) -> dict[str, Any]:
+    """The pairs of the moments, each unordered pair once with its domain (the smaller facet, or the one whose edge
+    lies on the other's: :func:`_contacts`), its kind (0 exact inner, 1 product Gauss, 2 clipped domain), rule,
+    rotation and angular rule, and which pairs need rays; in the arrays the compiled loops take."""
+    kern = _kernel()
+    iu, ju = facing_pairs(sc, eps, ("dense", 8))
+    dom, tgt = order_pairs(sc.areas, iu, ju)
+    cls = classify_pairs(sc, dom, tgt, tol, None, eps)
+    radius = (sc.corners - sc.centroids[:, None, :]).norm(dim=-1).amax(1)
+    near = (sc.centroids[dom] - sc.centroids[tgt]).norm(dim=-1) <= (radius[dom] + radius[tgt]) * (1 + 1e-6)
+    dom, tgt, has_edge, has_vertex, shift, swapped = _contacts(
+        sc, dom, tgt, cls.has_edge, cls.has_vertex, torch.where(cls.has_edge | cls.has_vertex, cls.shift, 0), near)
+    clip_d = torch.where(swapped, cls.clip_t, cls.clip_d)
+    clip_t = torch.where(swapped, cls.clip_d, cls.clip_t)
+    touch = has_edge | has_vertex
+    far = (cls.rho >= RHO_FAR) & ~touch & ~clip_d & ~clip_t
+    if occlusion is False or dom.numel() == 0:
+        need = torch.zeros(dom.numel(), dtype=torch.bool)
+    elif occlusion is True:
+        need = torch.ones(dom.numel(), dtype=torch.bool)
+    else:
+        need = blocker_candidates(sc, dom, tgt, eps)
+    order = torch.where(far, order_for(cls.rho, min(0.1, FAR_TOL_FACTOR * tol)), cls.order).clamp_min(degree + 1)
+    kind = torch.where(clip_d, 2, torch.where(far & ~need, 1, 0))  # occluded pairs take the exact inner integral
+    rules = _Rules()
+    key = torch.where(has_edge, -1, torch.where(has_vertex, -2, order))
+    rule = torch.empty_like(dom)
+    for k in torch.unique(key).tolist():
+        rid = rules.id("edge", cls.n_adj) if k == -1 else rules.id("vertex", cls.n_adj) if k == -2 else rules.id(
+            "plain", k)
+        rule[key == k] = rid
+    edge_rule, vertex_rule = rules.id("edge", cls.n_adj), rules.id("vertex", cls.n_adj)
+    off, ru, rv, rw = rules.arrays()
+    n_reg, n_fine = angular_orders(tol)
+    pairs = [t.contiguous().numpy() for t in (dom, tgt, kind, rule, shift)]
+    buf = int(kern.max_points(pairs[2], pairs[3], off, edge_rule, vertex_rule)) if dom.numel() else 1
+    return {"dom": dom, "tgt": tgt, "need": need, "pairs": pairs, "fine": (touch | clip_d).numpy(),
+            "rules": (off, ru, rv, rw, edge_rule, vertex_rule), "buf": buf,
+            "angular": (*np.polynomial.legendre.leggauss(n_reg), *np.polynomial.legendre.leggauss(n_fine)),
+            "corners": sc.corners.contiguous().numpy(), "normals": sc.normals.contiguous().numpy()}
+
+
+def _cast(kern: Any, sc: Scene, setup: dict[str, Any], sel: np.ndarray, ns: int,
+          seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """Rays of the occluded pairs ``sel`` (every outer point to ``ns²`` jittered target samples), cast in chunks of
+    whole pairs: each pair's first ray and the blocked flags."""
+    counts = np.zeros(sel.size, dtype=np.int64)
+    args = (*setup["pairs"], *setup["rules"], setup["corners"], setup["normals"])
+    if sel.size:
+        launch(kern.count_rays, sel, *args, setup["buf"], counts)
+    per = counts * ns * ns
+    ray_start = np.zeros(sel.size, dtype=np.int64)
+    np.cumsum(per[:-1], out=ray_start[1:])
+    blocked = np.zeros(int(per.sum()), dtype=np.bool_)
+    if blocked.size == 0:
+        return ray_start, blocked
+    caster = RayCaster(sc)
+    origin = np.asarray(caster.origin, dtype=np.float64)
+    tri = sc.is_triangle.cpu().numpy().astype(np.bool_)
+    s0 = 0
+    while s0 < sel.size:
+        s1 = min(sel.size, s0 + max(1, int(np.searchsorted(np.cumsum(per[s0:]), RAY_CHUNK, side="right"))))
+        m = int(per[s0:s1].sum())
+        ro, rd, rt = np.empty((m, 3), np.float32), np.empty((m, 3), np.float32), np.empty(m, np.float32)
+        launch(kern.build_rays, sel[s0:s1], ray_start[s0:s1] - ray_start[s0], *args, tri, ns, seed,
+               float(caster.eps), origin, setup["buf"], ro, rd, rt)
+        blocked[ray_start[s0]:ray_start[s0] + m] = caster.occluded(ro, rd, rt)
+        s0 = s1
+    return ray_start, blocked
+
+
+def moment_form_factors(
+    scene: Scene,
+    degree: int = 2,
+    *,
+    quadrature_tol: float = 1e-6,
+    occlusion: Literal["auto"] | bool = "auto",
+    visibility_samples: int = 3,
+    seed: int = 0,
+) -> MomentFormFactors:
+    """Galerkin moments ``G`` of the interreflection kernel on a polynomial basis of degree ``degree`` per facet.
+
+    Args:
+        scene: The scene (any dtype; computed in float64 on the CPU, returned in the scene's dtype and device).
+        degree: 0, 1 or 2: total degree of the polynomial that irradiance may have inside every facet.
+        quadrature_tol: Relative accuracy per entry that the quadrature orders aim at (outer rule orders from the
+            pairs' distance / size ratios, angular rule from :func:`angular_orders`).
+        occlusion: ``"auto"`` casts rays only for pairs that a third facet could block; ``False`` never (every pair
+            fully visible); ``True`` tests every pair.
+        visibility_samples: Rays per side of the target from every outer point of an occluded pair
+            (``visibility_samples²`` jittered strata).
+        seed: Seed of the jitter (deterministic for a given seed).
+
+    Returns:
+        :class:`MomentFormFactors` with ``info``: ``pairs``, ``near``/``far``/``clipped`` counts, ``occluded_pairs``,
+        ``occluded_facets [F]`` (facets with a ray-cast pair), ``rays``, ``seconds``, ``quadrature_tol``.
+
+    Raises:
+        ValueRangeError: a bad ``degree``, ``quadrature_tol`` or ``visibility_samples``.
+        RuntimeError: the compiled loops are disabled (``TI_DISABLE_NUMBA=1``).
+
+    Shape:
+        - output ``matrix``: ``[F·nb, F·nb]`` with ``nb = 1, 3, 6`` for degree 0, 1, 2
+
+    Example:
+        >>> import torch, torch_interreflect as ti
+        >>> scene = ti.scenes.v_groove(90.0, size=(1.0, 1.0), divisions=1, dtype=torch.float64)
+        >>> G = ti.formfactors.moment_form_factors(scene, degree=2)
+        >>> G.matrix.shape, round(float(G.matrix[0, 6]), 6)    # F_01 of two unit squares at 90°: 0.2000438
+        (torch.Size([12, 12]), 0.200044)
+    """
+    t_start = time.perf_counter()
+    nb = basis_size(degree)
+    if not (isinstance(quadrature_tol, (int, float)) and not isinstance(quadrature_tol, bool)
+            and math.isfinite(quadrature_tol) and 0 < quadrature_tol < 1):
+        raise ValueRangeError(f"quadrature_tol must be a number in (0, 1); got {quadrature_tol!r}")
+    if occlusion not in ("auto", True, False):
+        raise ValueRangeError(f"occlusion must be 'auto', True or False; got {occlusion!r}")
+    check_count(visibility_samples, "visibility_samples", note=" (rays per side of the target)")
+    kern = _kernel()
+    sc = scene.to(torch.float64).to("cpu").detach()
+    F = sc.num_facets
+    setup = _pairs(sc, degree, quadrature_tol, plane_eps(scene), occlusion)
+    dom, tgt, need = setup["dom"], setup["tgt"], setup["need"]
+    basis = facet_basis(sc, degree)
+    ns = int(visibility_samples)
+    sel = torch.nonzero(need).reshape(-1).numpy()
+    sel_of = np.full(dom.numel(), -1, dtype=np.int64)
+    sel_of[sel] = np.arange(sel.size)
+    ray_start, blocked = _cast(kern, sc, setup, sel, ns, int(seed))
+    acc = np.zeros((dom.numel(), nb, nb))
+    tri = sc.is_triangle.cpu().numpy().astype(np.bool_)
+    if dom.numel():
+        launch(kern.pair_moments, *setup["pairs"], setup["fine"], *setup["rules"], setup["corners"],
+               setup["normals"], basis.centroids.numpy(), basis.axes[:, 0].contiguous().numpy(),
+               basis.axes[:, 1].contiguous().numpy(), (1.0 / basis.scale).numpy(), tri, int(degree), *setup["angular"],
+               setup["buf"], sel_of, ray_start, blocked, ns, int(seed), acc)
+    G = np.zeros((F * nb, F * nb))
+    if dom.numel():
+        launch(kern.scatter_blocks, setup["pairs"][0], setup["pairs"][1], acc, basis.transform.numpy(),
+               sc.areas.numpy(), G)
+    kind = torch.from_numpy(setup["pairs"][2])
+    total = int(blocked.size)
+    occ_facets = torch.zeros(F, dtype=torch.bool)
+    if sel.size:
+        occ_facets[dom[need]] = True
+        occ_facets[tgt[need]] = True
+    matrix = torch.from_numpy(G).to(dtype=scene.dtype, device=scene.device)
+    info = {
+        "method": "moments",
+        "degree": int(degree),
+        "quadrature_tol": float(quadrature_tol),
+        "pairs": int(dom.numel()),
+        "far": int((kind == 1).sum()),
+        "clipped": int((kind == 2).sum()),
+        "occluded_pairs": int(sel.size),
+        "occluded_facets": occ_facets,
+        "rays": total,
+        "visibility_samples": ns,
+        "seconds": time.perf_counter() - t_start,
+    }
+    return MomentFormFactors(matrix, scene.areas.detach().to(scene.dtype), basis, info)

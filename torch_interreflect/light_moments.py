@@ -1,0 +1,232 @@
+"""Direct light projected on the polynomial basis of every facet: the right-hand side ``e0`` of the Galerkin system
+of :func:`~torch_interreflect.formfactors.moment_form_factors` (``E0[(i, a)]`` = the mean over facet ``i`` of
+``ψ_a E0``), as a geometric factor per basis function, ``e0[..., i, a, :] = g[i, a] · spectrum``.
+
+- ``"uniform"``: ``g = (1, 0, …)``.
+- a direction (a sun): ``g_a = cos θ_i · mean_i(ψ_a · lit)``; ``lit`` from one shadow ray at each point of an
+  ``n × n`` Gauss rule on the facets that something could shadow (:func:`~torch_interreflect.lights.shadow_candidates`),
+  1 elsewhere.
+- ``"sky"``: ``g_a = π mean_i(ψ_a · open)`` with ``open(x) = 1 − Σ_j F(x → j) − b(x)``; the first part is exact from
+  the moments (``Σ_j G[(i, a), (j, 0)]``); where the rows rest on ray-cast visibility, or where other facets' backs
+  may be in view, the open part at points of the facet comes from escaping (or back-hitting) cosine-weighted rays
+  instead (:func:`~torch_interreflect.formfactors.hemisphere.hemisphere_point_fractions`), as in
+  :func:`~torch_interreflect.lights.sky`.
+- an area light (a mask ``[F]`` or a material name, radiance ``L``): ``g_a = π Σ_{j ∈ light} G[(i, a), (j, 0)]``.
+- a factor ``[F]`` per facet: constant over each facet, ``g = (g_i, 0, …)``.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from typing import Literal
+
+import torch
+from torch import Tensor
+
+from ._checks import check_count
+from .errors import ShapeError, ValueRangeError
+from .formfactors.hemisphere import hemisphere_point_fractions
+from .formfactors.moments import MomentFormFactors
+from .formfactors.pairs import facing_pairs
+from .formfactors.rules import quadrature_rule
+from .formfactors.visibility import blocker_candidates
+from .geometry._polygon import bilinear, facing_any, plane_eps
+from .geometry.raycast import RayCaster
+from .geometry.scene import Scene
+from .lights import lit_fraction, shadow_candidates, sun_direction
+
+__all__ = ["light_is_rough", "light_moments"]
+
+
+def _project(K: MomentFormFactors, facets: Tensor, points: Tensor, weights: Tensor, values: Tensor) -> Tensor:
+    """``Σ_q w_q ψ_a(x_q) v_q`` per facet ``[k, nb]`` from points ``[k, Q, 3]``, weights ``[k, Q]`` (summing to 1
+    per facet) and values ``[k, Q]``."""
+    k, Q = weights.shape
+    psi = K.basis.evaluate(facets.repeat_interleave(Q), points.reshape(-1, 3)).reshape(k, Q, -1)
+    return (psi * (weights * values)[..., None]).sum(1)
+
+
+def _gauss_points(sc: Scene, facets: Tensor, n: int) -> tuple[Tensor, Tensor]:
+    u, v, w = quadrature_rule("plain", n, torch.float64, torch.device("cpu"))
+    x, jac = bilinear(sc.corners[facets], u, v)
+    wq = w[None] * jac
+    return x, wq / wq.sum(1, keepdim=True)
+
+
+def _sun(sc: Scene, K: MomentFormFactors, d: Tensor, shadows: Literal["auto"] | bool,
+         n: int) -> tuple[Tensor, Tensor]:
+    d = d / d.norm()
+    cos = (-(sc.normals @ d)).clamp_min(0.0)
+    g = torch.zeros(sc.num_facets, K.size, dtype=torch.float64)
+    g[:, 0] = cos
+    rough = torch.zeros(sc.num_facets, dtype=torch.bool)
+    if shadows is False:
+        return g, rough
+    idx = shadow_candidates(sc, d, shadows)
+    if idx.numel():
+        x, wq = _gauss_points(sc, idx, n)
+        caster = RayCaster(sc)
+        inside = x + 1e-9 * (sc.centroids[idx][:, None] - x) + caster.eps * sc.normals[idx][:, None]  # off the facet
+        hit = caster.first_hit(inside.reshape(-1, 3).numpy(), (-d).expand(inside.shape[0] * inside.shape[1], 3).numpy())
+        lit = torch.from_numpy(hit < 0).reshape(wq.shape).to(torch.float64)
+        g[idx] = cos[idx, None] * _project(K, idx, x, wq, lit)
+        rough[idx] = (lit.amax(1) > 0) & (lit.amin(1) < 1)  # a shadow edge crosses the facet
+    return g, rough
+
+
+def _sky(sc: Scene, K: MomentFormFactors, backfaces: Literal["auto"] | bool, samples: int, points: int) -> Tensor:
+    nb, F = K.size, sc.num_facets
+    G = K.matrix.detach().to(torch.float64).cpu()
+    covered = G.reshape(F, nb, F, nb)[:, :, :, 0].sum(2)  # mean_i(ψ_a Σ_j F(x → j))
+    g = -covered
+    g[:, 0] += 1.0
+    occ = K.info.get("occluded_facets")
+    occ = occ.cpu() if isinstance(occ, Tensor) else torch.zeros(F, dtype=torch.bool)
+    if backfaces is False:
+        escape_ids = torch.nonzero(occ).reshape(-1)
+        back_ids = escape_ids[:0]
+    else:
+        maybe_back = facing_any(sc, one_way=True) if backfaces == "auto" else torch.ones(F, dtype=torch.bool)
+        escape_ids = torch.nonzero(occ).reshape(-1)
+        back_ids = torch.nonzero(maybe_back & ~occ).reshape(-1)
+    caster = RayCaster(sc) if escape_ids.numel() or back_ids.numel() else None
+    if escape_ids.numel():
+        h = hemisphere_point_fractions(sc, escape_ids, samples=samples, points=points, back=False, caster=caster)
+        g[escape_ids] = _project(K, escape_ids, h["points"], h["weights"], h["escape"])
+    if back_ids.numel():
+        h = hemisphere_point_fractions(sc, back_ids, samples=samples, points=points, escape=False, caster=caster)
+        g[back_ids] -= _project(K, back_ids, h["points"], h["weights"], h["back"])
+    return math.pi * g
+
+
+def light_moments(
+    scene: Scene,
+    form_factors: MomentFormFactors,
+    light: str | Tensor | Sequence[float] = "uniform",
+    *,
+    shadows: Literal["auto"] | bool = "auto",
+    shadow_order: int = 8,
+    backfaces: Literal["auto"] | bool = "auto",
+    sky_samples: int = 16,
+    sky_points: int = 8,
+    rough: bool = False,
+    direction: bool | None = None,
+) -> Tensor | tuple[Tensor, Tensor]:
+    """The geometric factor of a light on the polynomial basis: ``e0[..., i, a, :] = g[i, a] · spectrum``.
+
+    Args:
+        scene: The scene of the moments.
+        form_factors: Its :class:`~torch_interreflect.formfactors.moments.MomentFormFactors`.
+        light: ``"uniform"``, ``"sky"``, a direction ``[3]`` (a sun; the direction the light travels), a material
+            name or a boolean mask ``[F]`` (an area light), or a factor ``[F]`` per facet (taken as constant over
+            each facet), as :func:`torch_interreflect.lights.light_geometry` takes them.
+        shadows: ``"auto"`` (shadow rays only where another facet is in front), ``True`` or ``False``.
+        shadow_order: Gauss points per side of a facet for the sun's shadow rays (``shadow_order²`` rays).
+        backfaces: The sky's back-face coverage, as in :func:`torch_interreflect.lights.sky`.
+        sky_samples, sky_points: Directions and points per axis of the sky's ray-cast open part (facets with
+            occluded pairs) and back coverage.
+        direction: ``True``: ``light`` is a direction whatever the scene's facet count (three numbers are a factor
+            per facet in a scene of 3 facets otherwise, as :func:`~torch_interreflect.lights.sun_direction` says);
+            ``None``: decided by that rule.
+        rough: Also return, per facet, whether the light is not smooth over it (a sun's shadow edge crosses it,
+            or a sky or area light reaches it through pairs that a third facet can block): where a polynomial
+            converges slowly.
+
+    Returns:
+        ``g`` (float64 on the CPU; the first column is the facet average, as :func:`light_geometry` gives it),
+        and with ``rough=True`` the flags ``[F]`` (bool) as well.
+
+    Raises:
+        ValueError: an unknown light name. ShapeError: a tensor of the wrong size. ValueRangeError: a bad factor.
+
+    Shape:
+        - output: ``[F, nb]``
+
+    Example:
+        >>> import torch, torch_interreflect as ti
+        >>> from torch_interreflect.light_moments import light_moments
+        >>> s = ti.scenes.v_groove(90.0, size=(1.0, 1.0), divisions=1, dtype=torch.float64)
+        >>> g = light_moments(s, ti.formfactors.moment_form_factors(s, 1), "sky")
+        >>> round(float(g[0, 0]) / 3.14159265, 4)  # 1 - 0.2000438
+        0.8
+    """
+    if form_factors.num_facets != scene.num_facets:
+        raise ShapeError(f"form_factors has {form_factors.num_facets} facets but the scene has {scene.num_facets}")
+    if shadows not in ("auto", True, False) or backfaces not in ("auto", True, False):
+        raise ValueError(f"shadows and backfaces must be 'auto', True or False; got {shadows!r}, {backfaces!r}")
+    check_count(shadow_order, "shadow_order")
+    check_count(sky_samples, "sky_samples")
+    check_count(sky_points, "sky_points")
+    sc = scene.detach().to(torch.float64).to("cpu")
+    g, flags = _moments(sc, form_factors, light, shadows, int(shadow_order), backfaces, int(sky_samples),
+                        int(sky_points), bool(direction))
+    return (g, flags) if rough else g
+
+
+def _moments(sc: Scene, form_factors: MomentFormFactors, light: str | Tensor | Sequence[float],
+             shadows: Literal["auto"] | bool, shadow_order: int, backfaces: Literal["auto"] | bool,
+             sky_samples: int, sky_points: int, direction: bool) -> tuple[Tensor, Tensor]:
+    """:func:`light_moments` and its roughness flags."""
+    F, nb = sc.num_facets, form_factors.size
+    smooth = torch.zeros(F, dtype=torch.bool)
+    occ = form_factors.info.get("occluded_facets")
+    occluded = occ.cpu() if isinstance(occ, Tensor) else smooth
+    if isinstance(light, str):
+        if light == "uniform":
+            g = torch.zeros(F, nb, dtype=torch.float64)
+            g[:, 0] = 1.0
+            return g, smooth
+        if light == "sky":
+            return _sky(sc, form_factors, backfaces, sky_samples, sky_points), occluded
+        if sc.material_names is None or light not in sc.material_names:
+            names = list(sc.material_names) if sc.material_names else []
+            raise ValueError(f"light must be 'uniform', 'sky', a direction [3], a facet mask [F], a tensor [F] or a "
+                             f"material name of the scene {names}; got {light!r}")
+        light = sc.material == sc.material_names.index(light)
+    t = light if isinstance(light, Tensor) else torch.as_tensor(light)
+    if t.dtype == torch.bool:
+        if t.shape != (F,):
+            raise ShapeError(f"an area-light mask must have shape [{F}] (one flag per facet); got {list(t.shape)}")
+        G = form_factors.matrix.detach().to(torch.float64).cpu().reshape(F, nb, F, nb)[:, :, :, 0]
+        return math.pi * (G * t.cpu().to(torch.float64)[None, None, :]).sum(2), occluded
+    d = t if direction else sun_direction(t, F)
+    if d is not None:
+        d64 = d.detach().to(torch.float64).cpu()
+        if not bool(torch.isfinite(d64).all()) or float(d64.norm()) == 0.0:
+            raise ValueRangeError(f"a light direction must be a finite nonzero 3-vector; got {d64.tolist()}")
+        return _sun(sc, form_factors, d64, shadows, shadow_order)
+    if not t.is_floating_point() or t.shape != (F,):
+        raise ShapeError(f"light as a tensor must be a direction [3] or a geometric factor / mask [F = {F}]; got "
+                         f"{list(t.shape)} ({t.dtype})")
+    if not bool(torch.isfinite(t).all()) or bool((t < 0).any()):
+        raise ValueRangeError("a geometric light factor [F] must be finite and non-negative")
+    g = torch.zeros(F, nb, dtype=torch.float64)
+    g[:, 0] = t.detach().to(torch.float64).cpu()
+    return g, smooth
+
+
+def light_is_rough(scene: Scene, light: str | Tensor | Sequence[float], *, direction: bool | None = None) -> bool:
+    """Whether a light is not smooth over some facet: a sun whose shadow edge crosses a facet (its lit fraction, from
+    4 × 4 shadow rays, strictly between 0 and 1), or a sky or an area light on a scene where a third facet can block
+    a pair (penumbrae). There a polynomial per facet converges slowly (:mod:`torch_interreflect.accuracy.moments_plan`).
+    ``direction`` as for :func:`light_moments`.
+
+    Example:
+        >>> import torch_interreflect as ti
+        >>> from torch_interreflect.light_moments import light_is_rough
+        >>> light_is_rough(ti.scenes.v_groove(45.0), "sky"), light_is_rough(ti.scenes.cornell_box(light=False), "sky")
+        (False, True)
+    """
+    sc = scene.detach().to(torch.float64).to("cpu")
+    if isinstance(light, str) and light == "uniform":
+        return False
+    t = None if isinstance(light, str) else (light if isinstance(light, Tensor) else torch.as_tensor(light))
+    if t is not None and (direction or sun_direction(t, sc.num_facets) is not None):
+        frac = lit_fraction(sc, t.detach().to(torch.float64).cpu())
+        return bool(((frac > 0) & (frac < 1)).any())
+    if t is not None and t.dtype != torch.bool:
+        return False  # a factor per facet: constant over each
+    eps = plane_eps(sc)
+    iu, ju = facing_pairs(sc, eps, ("dense", 8))
+    return bool(blocker_candidates(sc, iu, ju, eps).any()) if iu.numel() else False
