@@ -236,11 +236,15 @@ def finer_solution(
 
 #: Unknowns (pieces × k² × 6) of the quadratic-basis reference: its finest level is solved densely (about 30 s).
 QUADRATIC_UNKNOWNS = 11_000
+#: Visibility rays per side of the target from each outer point of the reference's occluded pairs (the W shape):
+#: 16× those of ``render``'s first level.
+REFERENCE_VISIBILITY = 12
 
 
 def quadratic_reference(name: str, p: dict, max_unknowns: int = QUADRATIC_UNKNOWNS, cache: Path = CACHE,
                         siblings: dict | None = None) -> dict | None:
-    """Our model on the quadratic basis (:func:`torch_interreflect.formfactors.moment_form_factors`, tol 1e-8) on
+    """Our model on the quadratic basis (:func:`torch_interreflect.formfactors.moment_form_factors`, tol 1e-8,
+    :data:`REFERENCE_VISIBILITY` rays per side) on
     ``subdivide(k)`` of the scene split at contacts, the largest ``k`` with ``6 F k² ≤ max_unknowns``, and on
     ``k − 1`` (their difference is its convergence), averaged to the user's facets; ``None`` where the light is
     rough (a shadow edge or a sky through blockable pairs: the quadratic basis converges slowly there, see
@@ -254,14 +258,14 @@ def quadratic_reference(name: str, p: dict, max_unknowns: int = QUADRATIC_UNKNOW
     if light_is_rough(pieces, p["light"], direction=direction):
         return None
     k = max(2, math.isqrt(max_unknowns // (6 * pieces_of(p))))
-    path = cache / f"quadratic_{name}{split_tag(p)}_k{k}.npz"
+    path = cache / f"quadratic_{name}{split_tag(p)}_k{k}_v{REFERENCE_VISIBILITY}.npz"
     if not path.exists():
         group = {name: p, **{n: q for n, q in (siblings or {}).items() if n != name}}
         sols: dict[str, list[np.ndarray]] = {n: [] for n in group}
         t0 = time.perf_counter()
         for lv in (k - 1, k):
             fine, user = split_and_subdivide(p["scene"], lv)
-            G = moment_form_factors(fine, 2, quadrature_tol=1e-8)
+            G = moment_form_factors(fine, 2, quadrature_tol=1e-8, visibility_samples=REFERENCE_VISIBILITY)
             g = light_moments(fine, G, p["light"], direction=direction)
             for n, q in group.items():
                 refl = torch.full((fine.num_facets,), q["r"], dtype=DTYPE)
@@ -271,7 +275,7 @@ def quadratic_reference(name: str, p: dict, max_unknowns: int = QUADRATIC_UNKNOW
                 sols[n].append(E.numpy().reshape(-1))
         cache.mkdir(parents=True, exist_ok=True)
         for n in group:
-            np.savez(cache / f"quadratic_{n}{split_tag(p)}_k{k}.npz", E=np.array(sols[n]), k=k,
+            np.savez(cache / f"quadratic_{n}{split_tag(p)}_k{k}_v{REFERENCE_VISIBILITY}.npz", E=np.array(sols[n]), k=k,
                      seconds=time.perf_counter() - t0)
     z = np.load(path)
     return {"k": int(z["k"]), "E": z["E"][1], "E_back": z["E"][0], "seconds": float(z["seconds"])}

@@ -131,7 +131,7 @@ def test_accuracy_benchmark_quadratic_reference(tmp_path: Path) -> None:
     p = ab.problem(ref)
     quad = ab.quadratic_reference("box_corner_sun_r9", p, max_unknowns=1200, cache=tmp_path)
     assert quad is not None and quad["k"] == 2 and quad["E"].shape == (48,)
-    assert (tmp_path / f"quadratic_box_corner_sun_r9{ab.split_tag(p)}_k2.npz").exists()
+    assert (tmp_path / f"quadratic_box_corner_sun_r9{ab.split_tag(p)}_k2_v{ab.REFERENCE_VISIBILITY}.npz").exists()
     # measured: k = 1 and 2 differ by 0.0102 % RMS, and k = 2 is 0.033 % from Mitsuba (raw; its noise 0.032 %)
     assert ab.rel_errors(quad["E_back"], quad["E"])[0] < 1.5e-4
     assert ab.rel_errors(quad["E"], ref["irradiance"])[0] < 4e-4

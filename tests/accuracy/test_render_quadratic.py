@@ -49,7 +49,7 @@ def test_request_met_and_estimate_honest(groove, light, accuracy):
     ref = _reference(groove, 0.9, lt)
     out = ti.render(groove, torch.full((8,), 0.9, dtype=D), lt, ONE, wavelengths=WL, accuracy=accuracy)
     rep = out.report
-    assert rep.degree == 2 and rep.reached and not rep.extrapolated
+    assert rep.degree in (1, 2) and rep.reached and not rep.extrapolated
     err = _rel(out.irradiance[:, 0], ref)
     actual = float(err.square().mean().sqrt())
     assert actual <= accuracy
@@ -62,7 +62,8 @@ def test_request_met_and_estimate_honest(groove, light, accuracy):
 def test_auto_picks_the_basis():
     groove = ti.scenes.v_groove(45.0, divisions=2, dtype=D)
     r = torch.full((8,), 0.5, dtype=D)
-    assert ti.render(groove, r, "uniform", ONE, wavelengths=WL).report.degree == 2
+    assert ti.render(groove, r, "uniform", ONE, wavelengths=WL).report.degree == 1  # enough for 1e-2
+    assert ti.render(groove, r, "uniform", ONE, wavelengths=WL, accuracy=1e-4).report.degree == 2
     moving = ti.scenes.v_groove(torch.tensor(45.0, dtype=D, requires_grad=True), divisions=2)
     assert ti.render(moving, r, "uniform", ONE, wavelengths=WL).report.degree == 0  # gradients to the corners
     box = ti.scenes.cornell_box(light=False, dtype=D)
@@ -110,7 +111,7 @@ def test_camera_rgb_and_image():
     view = ti.View(eye=(0.14, 0.045, 0.06), target=(0.02, 0.045, 0.01), fov_deg=50.0, height=12, width=16)
     sun = [-0.924, 0.1, -0.383]  # along the 45° groove's bisector: no shadows
     out = ti.render(scene, r, sun, "D65", cam, accuracy=1e-2, view=view)
-    assert out.report.degree == 2 and out.rgb.shape == (18, 3) and out.image.shape == (3, 12, 16)
+    assert out.report.degree in (1, 2) and out.rgb.shape == (18, 3) and out.image.shape == (3, 12, 16)
     ref = ti.render(scene, r, sun, "D65", cam, accuracy=2e-3, basis="constant")
     assert float(_rel(out.rgb, ref.rgb).square().mean().sqrt()) < 1e-2
 

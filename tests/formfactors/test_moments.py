@@ -355,3 +355,24 @@ def test_degree_convergence_on_a_groove():
         err.append(float(((E - ref) / ref).square().mean().sqrt()))
     assert err[0] > 3 * err[1] > 9 * err[2]
     assert err[2] < 2e-3
+
+
+def test_resampled_visibility_changes_only_the_occluded_pairs():
+    """Drawing the occluded pairs' rays again keeps every other pair's moments bit for bit, and the same seed gives
+    the same matrix as a fresh call."""
+    from torch_interreflect.formfactors.moments import resample_visibility
+
+    blocker = [[-0.8, -0.8, 0.5], [0.1, -0.8, 0.5], [0.1, 0.3, 0.5], [-0.8, 0.3, 0.5]]
+    side = [[0.7, -0.5, 0.0], [0.7, 0.5, 0.0], [0.7, 0.5, 1.0], [0.7, -0.5, 1.0]]  # sees the floor, unblocked
+    scene = scene_of([square(), square(1.0, flip=True), blocker, blocker[::-1], side])
+    G = moment_form_factors(scene, 2, seed=0)
+    H = resample_visibility(G, seed=1)
+    again = resample_visibility(H, seed=0)
+    assert torch.equal(again.matrix, G.matrix)
+    assert not torch.equal(H.matrix, G.matrix)
+    blocks = (H.matrix - G.matrix).reshape(5, 6, 5, 6).abs().amax((1, 3)) > 0
+    assert not bool(blocks[0, 4]) and not bool(blocks[4, 0])  # floor–side pair: never blocked, never resampled
+    assert torch.equal(resample_visibility(G, seed=3, visibility_samples=6).matrix,
+                       moment_form_factors(scene, 2, seed=3, visibility_samples=6).matrix)
+    with pytest.raises(ValueError, match="resample_visibility needs"):
+        resample_visibility(G.truncate(1), seed=1)

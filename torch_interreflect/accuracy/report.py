@@ -38,8 +38,8 @@ class AccuracyReport:
         history: Per refinement step: leaves, estimated discretisation error, seconds.
         extrapolated: Whether the outputs are extrapolated against each facet one split back (the coarse level is
             solved too; :attr:`Plan.extrapolation`).
-        degree: Degree of the polynomial irradiance inside every leaf (0: one constant per leaf; 2: the quadratic
-            basis of :mod:`torch_interreflect.accuracy.moments_plan`).
+        degree: Degree of the polynomial irradiance inside every leaf (0: one constant per leaf; 1 or 2: the linear or
+            quadratic basis of :mod:`torch_interreflect.accuracy.moments_plan`).
     """
 
     requested: float
@@ -78,7 +78,7 @@ class AccuracyReport:
 
     def __str__(self) -> str:
         solver = f"{self.bounces} bounces" if self.method == "series" else f"{self.method} (tol {self.solver_tol:.1g})"
-        basis = ", quadratic basis" if self.degree == 2 else ""
+        basis = {0: "", 1: ", linear basis", 2: ", quadratic basis"}.get(self.degree, "")
         return (
             f"accuracy {self.requested:.3g} requested, {self.estimated:.3g} estimated "
             f"({'reached' if self.reached else 'NOT reached'}); {self.leaves} facets solved "

@@ -348,10 +348,11 @@ def build_rays(sel, start, dom, tgt, kind, rule, shift, rule_off, rule_u, rule_v
 
 
 @njit(parallel=True, cache=True)
-def pair_moments(dom, tgt, kind, rule, shift, fine, rule_off, rule_u, rule_v, rule_w, edge_rule, vertex_rule,
+def pair_moments(todo, dom, tgt, kind, rule, shift, fine, rule_off, rule_u, rule_v, rule_w, edge_rule, vertex_rule,
                  corners, normals, cent, e1, e2, inv_l, triangle, deg, gx, gw, gx_fine, gw_fine, buf, sel_of, ray_start,
                  blocked, ns, seed, out):
-    """``out[p, c, d] = Σ_o w_o m_c(x_o) ∫_tgt k(x_o, y) V(x_o, y) m_d(y) dA`` (monomials of ``dom`` and ``tgt``; m²).
+    """``out[p, c, d] = Σ_o w_o m_c(x_o) ∫_tgt k(x_o, y) V(x_o, y) m_d(y) dA`` (monomials of ``dom`` and ``tgt``; m²)
+    for the pairs ``p`` in ``todo``.
 
     ``kind``: 0 exact inner on the whole domain, 1 product Gauss (the rule on both facets; far pairs), 2 exact
     inner on the domain clipped to the target's plane (:func:`outer_points`). ``fine[p]``: the angular rule
@@ -364,7 +365,8 @@ def pair_moments(dom, tgt, kind, rule, shift, fine, rule_off, rule_u, rule_v, ru
     """
     nb = 1 if deg == 0 else (3 if deg == 1 else 6)
     n2 = ns * ns
-    for p in prange(dom.shape[0]):
+    for t_ in prange(todo.shape[0]):
+        p = todo[t_]
         i, j = dom[p], tgt[p]
         acc = np.zeros((nb, nb))
         W = np.empty((_KMAX, 3))

@@ -54,7 +54,7 @@ from .pairs import classify_pairs, facing_pairs, order_pairs
 from .rules import order_for, quadrature_rule
 from .visibility import blocker_candidates
 
-__all__ = ["RHO_FAR", "MomentFormFactors", "moment_form_factors"]
+__all__ = ["RHO_FAR", "MomentFormFactors", "moment_form_factors", "resample_visibility"]
 
 #: Pairs whose centroid distance is at least this many (larger) facet diameters, and that neither touch nor
 #: straddle each other's planes, get the product Gauss rule on both facets.
@@ -134,12 +134,13 @@ class MomentFormFactors:
         m = self.matrix.reshape(F, nb, F, nb)[:, :nb_new, :, :nb_new].reshape(F * nb_new, F * nb_new).contiguous()
         b = self.basis
         basis = FacetBasis(degree, b.centroids, b.axes, b.scale, b.transform[:, :nb_new, :nb_new].contiguous())
-        return MomentFormFactors(m, self.areas, basis, dict(self.info))
+        info = {k: v for k, v in self.info.items() if k not in ("_sums", "_moment_plan")}
+        return MomentFormFactors(m, self.areas, basis, info)
 
     def to(self, *args: Any, **kwargs: Any) -> MomentFormFactors:
         """Move/cast the matrix and areas like :meth:`torch.Tensor.to` (the basis stays float64 on the CPU)."""
-        return MomentFormFactors(self.matrix.to(*args, **kwargs), self.areas.to(*args, **kwargs), self.basis,
-                                 dict(self.info))
+        info = {k: v for k, v in self.info.items() if k not in ("_sums", "_moment_plan")}
+        return MomentFormFactors(self.matrix.to(*args, **kwargs), self.areas.to(*args, **kwargs), self.basis, info)
 
     def __repr__(self) -> str:
         return (f"MomentFormFactors(num_facets={self.num_facets}, degree={self.degree}, size={self.size}, "
@@ -346,30 +347,17 @@ def moment_form_factors(
     check_count(visibility_samples, "visibility_samples", note=" (rays per side of the target)")
     kern = _kernel()
     sc = scene.to(torch.float64).to("cpu").detach()
-    F = sc.num_facets
     setup = _pairs(sc, degree, quadrature_tol, plane_eps(scene), occlusion)
-    dom, tgt, need = setup["dom"], setup["tgt"], setup["need"]
     basis = facet_basis(sc, degree)
-    ns = int(visibility_samples)
-    sel = torch.nonzero(need).reshape(-1).numpy()
-    sel_of = np.full(dom.numel(), -1, dtype=np.int64)
-    sel_of[sel] = np.arange(sel.size)
-    ray_start, blocked = _cast(kern, sc, setup, sel, ns, int(seed))
-    acc = np.zeros((dom.numel(), nb, nb))
-    tri = sc.is_triangle.cpu().numpy().astype(np.bool_)
-    if dom.numel():
-        launch(kern.pair_moments, *setup["pairs"], setup["fine"], *setup["rules"], setup["corners"],
-               setup["normals"], basis.centroids.numpy(), basis.axes[:, 0].contiguous().numpy(),
-               basis.axes[:, 1].contiguous().numpy(), (1.0 / basis.scale).numpy(), tri, int(degree), *setup["angular"],
-               setup["buf"], sel_of, ray_start, blocked, ns, int(seed), acc)
-    G = np.zeros((F * nb, F * nb))
-    if dom.numel():
-        launch(kern.scatter_blocks, setup["pairs"][0], setup["pairs"][1], acc, basis.transform.numpy(),
-               sc.areas.numpy(), G)
+    todo = np.arange(setup["dom"].numel(), dtype=np.int64)
+    acc = np.zeros((todo.size, nb, nb))
+    total = _pair_sums(kern, sc, setup, basis, todo, int(visibility_samples), int(seed), acc)
+    G = _assemble(kern, sc, setup, basis, acc)
+    dom, tgt, need = setup["dom"], setup["tgt"], setup["need"]
+    F = sc.num_facets
     kind = torch.from_numpy(setup["pairs"][2])
-    total = int(blocked.size)
     occ_facets = torch.zeros(F, dtype=torch.bool)
-    if sel.size:
+    if bool(need.any()):
         occ_facets[dom[need]] = True
         occ_facets[tgt[need]] = True
     matrix = torch.from_numpy(G).to(dtype=scene.dtype, device=scene.device)
@@ -380,10 +368,67 @@ def moment_form_factors(
         "pairs": int(dom.numel()),
         "far": int((kind == 1).sum()),
         "clipped": int((kind == 2).sum()),
-        "occluded_pairs": int(sel.size),
+        "occluded_pairs": int(need.sum()),
         "occluded_facets": occ_facets,
         "rays": total,
-        "visibility_samples": ns,
+        "visibility_samples": int(visibility_samples),
         "seconds": time.perf_counter() - t_start,
+        "_sums": (sc, setup, acc),  # for resample_visibility: the pairs and their sums
     }
     return MomentFormFactors(matrix, scene.areas.detach().to(scene.dtype), basis, info)
+
+
+def resample_visibility(moments: MomentFormFactors, *, seed: int, visibility_samples: int | None = None
+                        ) -> MomentFormFactors:
+    """The same moments with the occluded pairs' rays drawn again (another ``seed``, optionally another
+    ``visibility_samples``); the other pairs' sums are reused, so this costs the occluded pairs alone. The change
+    between the two measures the sampled visibility's error (:mod:`torch_interreflect.accuracy.moments_plan`).
+
+    Raises:
+        ValueError: ``moments`` does not hold the sums of :func:`moment_form_factors` (e.g. after ``.to()``).
+    """
+    sums = moments.info.get("_sums")
+    if sums is None:
+        raise ValueError("resample_visibility needs moments straight from moment_form_factors (they keep their "
+                         "pairs' sums); got moments without them")
+    sc, setup, acc = sums
+    ns = int(visibility_samples if visibility_samples is not None else moments.info["visibility_samples"])
+    check_count(ns, "visibility_samples", note=" (rays per side of the target)")
+    t0 = time.perf_counter()
+    kern = _kernel()
+    todo = torch.nonzero(setup["need"]).reshape(-1).numpy().astype(np.int64)
+    acc = acc.copy()
+    rays = _pair_sums(kern, sc, setup, moments.basis, todo, ns, int(seed), acc)
+    G = _assemble(kern, sc, setup, moments.basis, acc)
+    info = dict(moments.info, rays=rays, visibility_samples=ns, seconds=time.perf_counter() - t0,
+                _sums=(sc, setup, acc))
+    info.pop("_moment_plan", None)
+    matrix = torch.from_numpy(G).to(dtype=moments.dtype, device=moments.device)
+    return MomentFormFactors(matrix, moments.areas, moments.basis, info)
+
+
+def _pair_sums(kern: Any, sc: Scene, setup: dict[str, Any], basis: FacetBasis, todo: np.ndarray, ns: int, seed: int,
+               acc: np.ndarray) -> int:
+    """Fill ``acc[todo]`` with the pairs' monomial sums (rays cast for the occluded ones among them); the ray count."""
+    need = setup["need"].numpy()
+    sel = todo[need[todo]]
+    sel_of = np.full(setup["dom"].numel(), -1, dtype=np.int64)
+    sel_of[sel] = np.arange(sel.size)
+    ray_start, blocked = _cast(kern, sc, setup, sel, ns, seed)
+    tri = sc.is_triangle.cpu().numpy().astype(np.bool_)
+    if todo.size:
+        launch(kern.pair_moments, todo, *setup["pairs"], setup["fine"], *setup["rules"], setup["corners"],
+               setup["normals"], basis.centroids.numpy(), basis.axes[:, 0].contiguous().numpy(),
+               basis.axes[:, 1].contiguous().numpy(), (1.0 / basis.scale).numpy(), tri, int(basis.degree),
+               *setup["angular"], setup["buf"], sel_of, ray_start, blocked, ns, seed, acc)
+    return int(blocked.size)
+
+
+def _assemble(kern: Any, sc: Scene, setup: dict[str, Any], basis: FacetBasis, acc: np.ndarray) -> np.ndarray:
+    """The dense matrix ``[F·nb, F·nb]`` from the pairs' sums."""
+    F, nb = sc.num_facets, basis.size
+    G = np.zeros((F * nb, F * nb))
+    if acc.shape[0]:
+        launch(kern.scatter_blocks, setup["pairs"][0], setup["pairs"][1], acc, basis.transform.numpy(),
+               sc.areas.numpy(), G)
+    return G
