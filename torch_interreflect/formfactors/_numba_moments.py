@@ -27,6 +27,8 @@ import math
 import numpy as np
 from numba import njit, prange
 
+from ._numba_geometry import bilinear_map, jacobian_norm
+
 _INV_PI = 1.0 / math.pi
 
 #: most vertices of a clipped polygon (a quad clipped once: 5, plus one spare)
@@ -186,20 +188,8 @@ def _point_kernel(x0, x1, x2, nx, y0, y1, y2, ny):
 @njit(cache=True, inline="always")
 def _map(Cq, u, v):
     """Bilinear point and area Jacobian of the quad ``Cq [4, 3]`` at ``(u, v)``."""
-    a, b, c, e = (1 - u) * (1 - v), u * (1 - v), u * v, (1 - u) * v
-    x0 = a * Cq[0, 0] + b * Cq[1, 0] + c * Cq[2, 0] + e * Cq[3, 0]
-    x1 = a * Cq[0, 1] + b * Cq[1, 1] + c * Cq[2, 1] + e * Cq[3, 1]
-    x2 = a * Cq[0, 2] + b * Cq[1, 2] + c * Cq[2, 2] + e * Cq[3, 2]
-    du0 = (1 - v) * (Cq[1, 0] - Cq[0, 0]) + v * (Cq[2, 0] - Cq[3, 0])
-    du1 = (1 - v) * (Cq[1, 1] - Cq[0, 1]) + v * (Cq[2, 1] - Cq[3, 1])
-    du2 = (1 - v) * (Cq[1, 2] - Cq[0, 2]) + v * (Cq[2, 2] - Cq[3, 2])
-    dv0 = (1 - u) * (Cq[3, 0] - Cq[0, 0]) + u * (Cq[2, 0] - Cq[1, 0])
-    dv1 = (1 - u) * (Cq[3, 1] - Cq[0, 1]) + u * (Cq[2, 1] - Cq[1, 1])
-    dv2 = (1 - u) * (Cq[3, 2] - Cq[0, 2]) + u * (Cq[2, 2] - Cq[1, 2])
-    j0 = du1 * dv2 - du2 * dv1
-    j1 = du2 * dv0 - du0 * dv2
-    j2 = du0 * dv1 - du1 * dv0
-    return x0, x1, x2, math.sqrt(j0 * j0 + j1 * j1 + j2 * j2)
+    x0, x1, x2, du0, du1, du2, dv0, dv1, dv2 = bilinear_map(Cq, u, v)
+    return x0, x1, x2, jacobian_norm(du0, du1, du2, dv0, dv1, dv2)
 
 
 @njit(cache=True, inline="always")
