@@ -293,7 +293,7 @@ def plan(
     if quadratic and basis == "auto":
         # one solve on the constant basis, with its a-priori estimate, is cheaper still where it already meets the
         # request (dark scenes: 30 ms against 0.2 s for the 200-facet grooves at r = 0.2); it costs 10-30 ms where
-        # it does not
+        # it does not. Then the light's roughness decides.
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", AccuracyWarning)
             probe = plan(scene, reflectance, light, illuminant, camera, accuracy=accuracy, wavelengths=wavelengths,
@@ -301,6 +301,7 @@ def plan(
                          basis="constant")
         if probe.report.reached:
             return probe
+        quadratic = _smooth_light(scene, light)
     pb = _problem(scene, reflectance, light, illuminant, camera, accuracy, wavelengths, extrapolate and not quadratic)
     show = progress if progress is not None else scene.num_facets >= 2000 or accuracy < 3e-3
     if quadratic:
@@ -349,18 +350,22 @@ def plan(
 
 
 def _quadratic(basis: str, scene: Scene, light: Any) -> bool:
-    """Whether to plan on the quadratic basis: ``basis="quadratic"``, or ``"auto"`` unless gradients must reach the
-    geometry (corners or a light direction that require grad: the moments are constants of the geometry), the
-    compiled loops are off, or the light is rough over some facet of the scene split at contacts (a sun's shadow
-    edge, a sky or area light through blockable pairs: :func:`~torch_interreflect.light_moments.light_is_rough`),
-    where the quadratic basis's estimate does not hold."""
+    """Whether the polynomial basis may be used: ``basis="quadratic"``, or ``"auto"`` unless gradients must reach the
+    geometry (corners or a light direction that require grad: the moments are constants of the geometry) or the
+    compiled loops are off. Under ``"auto"`` :func:`plan` then also needs the light smooth over every piece
+    (:func:`_smooth_light`: no sun's shadow edge, no sky or area light through blockable pairs,
+    :func:`~torch_interreflect.light_moments.light_is_rough`), where the polynomial basis's estimate does not
+    hold."""
     if basis not in ("auto", "constant", "quadratic"):
         raise ValueError(f"basis must be 'auto', 'constant' or 'quadratic'; got {basis!r}")
     if basis != "auto":
         return basis == "quadratic"
     light_grad = isinstance(light, Tensor) and light.requires_grad
-    if scene.corners.requires_grad or light_grad or loops("moments") is None:
-        return False
+    return not (scene.corners.requires_grad or light_grad or loops("moments") is None)
+
+
+def _smooth_light(scene: Scene, light: Any) -> bool:
+    """No rough light over any piece of the scene split at contacts (``basis="auto"``'s last test)."""
     is_sun = sun_direction(light, scene.num_facets) is not None  # on the user's facets, not the pieces' count
     return not light_is_rough(split_at_contacts(scene)[0], light, direction=is_sun)
 
