@@ -991,9 +991,13 @@ def main(argv: Sequence[str] | None = None) -> None:
     def log(msg: str) -> None:
         print(f"[{time.perf_counter() - t_start:7.1f} s] {msg}", flush=True)
 
-    # warm-up: the first calls load the ray tracer and set up caches
+    # warm-up: the first calls load the ray tracer, set up caches and load the compiled loops (the children forked
+    # for each case inherit them): the constant basis, and the polynomial one with and without occluded pairs
     w = problem(mr.load_reference("box_corner_sun_r2"))
     run_case(w, 2e-2, basis=a.basis)
+    if a.basis != "constant":
+        for name in ("box_corner_sun_r9", "w_shape_sun_r9"):
+            run_case(problem(mr.load_reference(name)), 1e-2, basis="quadratic")
     groups: dict[str, list[str]] = {}
     for name in names:
         groups.setdefault(geometry_key(mr.load_reference(name)), []).append(name)

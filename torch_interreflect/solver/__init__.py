@@ -5,10 +5,12 @@
 - :mod:`.plan`, :mod:`.columns`, :mod:`.dense`, :mod:`.krylov`: the plan of a matrix, the column driver, the dense
   (Cholesky of the SPD form; guarded LU without reciprocity) and Krylov (CG on the SPD form, Neumann) solvers.
 - :mod:`.operator`: solving with an operator (hierarchical form factors) instead of a stored matrix.
+- :mod:`.moments`: :func:`solve_moments`, the Galerkin system on a polynomial basis per facet.
 
 Gradients come from the adjoint system (DESIGN.md §1), never from backpropagating through iterations.
 """
 
 from .api import Solution, SolveInfo, radiance, solve, solve_with_info
+from .moments import facet_averages, solve_moments
 
-__all__ = ["Solution", "SolveInfo", "radiance", "solve", "solve_with_info"]
+__all__ = ["Solution", "SolveInfo", "facet_averages", "radiance", "solve", "solve_moments", "solve_with_info"]
