@@ -28,11 +28,13 @@ def groove() -> ti.Scene:
     return ti.scenes.v_groove(60.0, size=(1.0, 1.0), divisions=2, dtype=D)
 
 
-def _reference(scene: ti.Scene, r: float, light, k: int = 8) -> torch.Tensor:
-    """Degree 2 on ``subdivide(k)`` at tol 1e-8: converged to ~1e-6 here (k = 6 and 8 differ by 4e-7 RMS)."""
+def _reference(scene: ti.Scene, r: float, light, k: int = 8, r_: torch.Tensor | None = None) -> torch.Tensor:
+    """Degree 2 on ``subdivide(k)`` at tol 1e-8: converged to ~1e-6 here (k = 6 and 8 differ by 4e-7 RMS).
+    ``r_``: a reflectance per facet instead of ``r``."""
     fine, parent = scene.subdivide(k)
     G = moment_form_factors(fine, 2, quadrature_tol=1e-8)
-    c = solve_moments(G, torch.full((fine.num_facets,), r, dtype=D), light_moments(fine, G, light)[..., None])
+    refl = r_[parent] if r_ is not None else torch.full((fine.num_facets,), r, dtype=D)
+    c = solve_moments(G, refl, light_moments(fine, G, light)[..., None])
     return ti.geometry.area_average(facet_averages(c), parent, fine.areas, scene.num_facets)[:, 0]
 
 
@@ -112,8 +114,9 @@ def test_camera_rgb_and_image():
     sun = [-0.924, 0.1, -0.383]  # along the 45° groove's bisector: no shadows
     out = ti.render(scene, r, sun, "D65", cam, accuracy=1e-2, view=view)
     assert out.report.degree in (1, 2) and out.rgb.shape == (18, 3) and out.image.shape == (3, 12, 16)
-    ref = ti.render(scene, r, sun, "D65", cam, accuracy=2e-3, basis="constant")
-    assert float(_rel(out.rgb, ref.rgb).square().mean().sqrt()) < 1e-2
+    ref = ti.render(scene, r, sun, "D65", cam, accuracy=1e-4, basis="quadratic")
+    err = float(_rel(out.rgb, ref.rgb).square().mean().sqrt())
+    assert err <= out.report.estimated and err < 3e-3  # measured 1.7e-3 (degree 1), estimated 4.4e-3
 
 
 def test_unreachable_request_warns_and_says_why(groove):
@@ -121,3 +124,42 @@ def test_unreachable_request_warns_and_says_why(groove):
         out = ti.render(groove, torch.full((8,), 0.9, dtype=D), "uniform", ONE, wavelengths=WL, accuracy=1e-6,
                         max_facets=60)
     assert not out.report.reached and out.report.leaves <= 10
+
+
+def test_auto_keeps_the_constant_basis_for_contacts_among_occluders():
+    """The Cornell box's blocks stand on its floor among occluders: under uniform light the polynomial estimate was
+    measured at 0.14 % against an actual 0.38 % (1e-3, 1,208 leaves), so ``auto`` plans it on the constant basis."""
+    box = ti.scenes.cornell_box(light=False, dtype=D)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", AccuracyWarning)
+        out = ti.render(box, torch.full((box.num_facets,), 0.5, dtype=D), "uniform", ONE, wavelengths=WL,
+                        accuracy=0.05, max_iterations=1)
+    assert out.report.degree == 0
+
+
+def test_float32_batches_and_area_lights(groove):
+    """float32 scenes, a batch of reflectances (each member as its own render) and an area light on the polynomial
+    basis."""
+    g32 = groove.to(torch.float32)
+    r = torch.stack([torch.full((8,), 0.9), torch.linspace(0.3, 0.9, 8)])
+    out = ti.render(g32, r, SUN.float(), ONE.float(), wavelengths=WL.float(), accuracy=1e-3)
+    assert out.irradiance.dtype == torch.float32 and out.irradiance.shape == (2, 8, 1) and out.report.degree == 2
+    one = ti.render(g32, r[1], SUN.float(), ONE.float(), wavelengths=WL.float(), accuracy=1e-3, basis="quadratic")
+    p = ti.accuracy.plan(g32, r[0], SUN.float(), ONE.float(), wavelengths=WL.float(), accuracy=1e-3)
+    assert torch.allclose(p.apply(r[1], ONE.float()).irradiance, out.irradiance[1], rtol=1e-5)
+    assert float(_rel(one.irradiance[:, 0].double(), _reference(groove, 0, SUN, k=4, r_=r[1].double()))
+                 .square().mean().sqrt()) < 1e-3
+    lamp = torch.zeros(8, dtype=torch.bool)
+    lamp[4:] = True  # the other plate glows
+    out = ti.render(groove, torch.full((8,), 0.9, dtype=D), lamp, ONE, wavelengths=WL, accuracy=1e-3)
+    assert out.report.degree in (1, 2)
+    ref = _reference(groove, 0.9, lamp.repeat_interleave(64), k=8)
+    assert float(_rel(out.irradiance[:4, 0], ref[:4]).square().mean().sqrt()) <= 1e-3
+
+
+def test_polynomial_render_on_a_device(device):
+    """On the CPU and, where there is one, a CUDA device: the moments are computed on the CPU and moved."""
+    groove = ti.scenes.v_groove(60.0, size=(1.0, 1.0), divisions=2, dtype=D).to(device)
+    r = torch.full((8,), 0.9, dtype=D, device=device)
+    out = ti.render(groove, r, SUN.to(device), ONE.to(device), wavelengths=WL.to(device), accuracy=1e-3)
+    assert out.irradiance.device.type == device.type and out.report.degree == 2

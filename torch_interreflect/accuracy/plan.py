@@ -18,18 +18,21 @@ from ..camera.rendering import render_view
 from ..camera.sensor import Camera
 from ..camera.view import View
 from ..errors import AccuracyWarning, ShapeError, ValueRangeError
-from ..formfactors.compiled import loops
 from ..formfactors.operator import FormFactors
 from ..formfactors.quadrature import form_factors
 from ..geometry._polygon import bilinear, bilinear_coordinates
-from ..geometry.contacts import split_at_contacts
 from ..geometry.scene import Scene, area_average
-from ..light_moments import light_is_rough
-from ..lights import sun_direction
 from ..solver.api import solve
 from ..solver.moments import DENSE_MAX_UNKNOWNS, solve_moments
 from .leaves import light_factor, rms
-from .moments_plan import moment_quadrature_tol, moment_report, refine_moments, solver_tolerance
+from .moments_plan import (
+    moment_quadrature_tol,
+    moment_report,
+    polynomial_allowed,
+    refine_moments,
+    smooth_light,
+    solver_tolerance,
+)
 from .refine import AMPLIFICATION, Problem, Refinement, refine
 from .report import AccuracyReport, RenderResult
 from .settings import Settings, budget_for, choose_settings, quadrature_tol_for
@@ -194,7 +197,7 @@ class Plan:
             if torch.is_grad_enabled() and (self.scene.corners.requires_grad or light_grad):
                 self._check_geometry_fixed()
             K, g, areas = self.form_factors, self.light_factor, self.leaves.areas
-            gl = g.to(refl_leaf.dtype)[:, :, None].expand(-1, -1, refl_leaf.shape[-1])
+            gl = g.to(device=refl_leaf.device, dtype=refl_leaf.dtype)[:, :, None].expand(-1, -1, refl_leaf.shape[-1])
             h = solve_moments(K, refl_leaf, gl, tol=self.solver_tol, method=self.method)[..., 0, :]  # type: ignore[arg-type]
         else:
             K, g, areas = self._geometry()
@@ -289,7 +292,7 @@ def plan(
     """
     t_start = time.perf_counter()
     _check_request(scene, accuracy, max_facets)
-    quadratic = _quadratic(basis, scene, light)
+    quadratic = polynomial_allowed(basis, scene, light)
     if quadratic and basis == "auto":
         # one solve on the constant basis, with its a-priori estimate, is cheaper still where it already meets the
         # request (dark scenes: 30 ms against 0.2 s for the 200-facet grooves at r = 0.2); it costs 10-30 ms where
@@ -301,11 +304,15 @@ def plan(
                          basis="constant")
         if probe.report.reached:
             return probe
-        quadratic = _smooth_light(scene, light)
+        quadratic = smooth_light(scene, light)
     pb = _problem(scene, reflectance, light, illuminant, camera, accuracy, wavelengths, extrapolate and not quadratic)
     show = progress if progress is not None else scene.num_facets >= 2000 or accuracy < 3e-3
     if quadratic:
-        return _plan_quadratic(pb, light, max_facets, max_iterations, show, t_start)
+        chosen = _plan_quadratic(pb, light, max_facets, max_iterations, show, t_start, basis == "auto")
+        if chosen is not None:
+            return chosen
+        # a rough light that the first test missed (a shadow edge between its 4 × 4 rays): the constant basis
+        pb = _problem(scene, reflectance, light, illuminant, camera, accuracy, wavelengths, extrapolate)
     with warnings.catch_warnings():
         # the planning solves (each level, the a-priori estimate) would each repeat the solver's closure-error
         # warning of the same form factors; the solve of the chosen plan (Plan.apply) raises it once
@@ -349,30 +356,10 @@ def plan(
     )
 
 
-def _quadratic(basis: str, scene: Scene, light: Any) -> bool:
-    """Whether the polynomial basis may be used: ``basis="quadratic"``, or ``"auto"`` unless gradients must reach the
-    geometry (corners or a light direction that require grad: the moments are constants of the geometry) or the
-    compiled loops are off. Under ``"auto"`` :func:`plan` then also needs the light smooth over every piece
-    (:func:`_smooth_light`: no sun's shadow edge, no sky or area light through blockable pairs,
-    :func:`~torch_interreflect.light_moments.light_is_rough`), where the polynomial basis's estimate does not
-    hold."""
-    if basis not in ("auto", "constant", "quadratic"):
-        raise ValueError(f"basis must be 'auto', 'constant' or 'quadratic'; got {basis!r}")
-    if basis != "auto":
-        return basis == "quadratic"
-    light_grad = isinstance(light, Tensor) and light.requires_grad
-    return not (scene.corners.requires_grad or light_grad or loops("moments") is None)
-
-
-def _smooth_light(scene: Scene, light: Any) -> bool:
-    """No rough light over any piece of the scene split at contacts (``basis="auto"``'s last test)."""
-    is_sun = sun_direction(light, scene.num_facets) is not None  # on the user's facets, not the pieces' count
-    return not light_is_rough(split_at_contacts(scene)[0], light, direction=is_sun)
-
-
-def _plan_quadratic(pb: Problem, light: Any, max_facets: int, max_iterations: int, show: bool,
-                    t_start: float) -> Plan:
-    """:func:`plan` on the quadratic basis (:mod:`.moments_plan`)."""
+def _plan_quadratic(pb: Problem, light: Any, max_facets: int, max_iterations: int, show: bool, t_start: float,
+                    auto: bool) -> Plan | None:
+    """:func:`plan` on the polynomial basis (:mod:`.moments_plan`); ``None`` when ``auto`` and the light turned out
+    rough over some leaf (the caller plans on the constant basis then)."""
     pb.quadrature_tol = moment_quadrature_tol(pb.accuracy)
     st = refine_moments(pb, max_unknowns=max_facets, max_iterations=max_iterations, show=show, t_start=t_start)
     n = st.leaves.scene.num_facets
@@ -380,6 +367,8 @@ def _plan_quadratic(pb: Problem, light: Any, max_facets: int, max_iterations: in
     tol = solver_tolerance(pb.accuracy)
     report = moment_report(pb, st, method, tol, t_start)
     if st.rough is not None and bool(st.rough.any()):
+        if auto:
+            return None
         warnings.warn(
             f"render(basis='quadratic'): the light is rough over {int(st.rough.sum())} user facets (a shadow edge "
             "crosses a leaf, or a sky or area light reaches it through blockable pairs), where the quadratic basis's "

@@ -103,6 +103,8 @@ def solve_moments(
         raise ValueError(f"method must be 'auto', 'dense' or 'cg'; got {method!r}")
     if not (isinstance(tol, (int, float)) and math.isfinite(tol) and tol > 0):
         raise ValueError(f"tol must be a positive finite number; got {tol!r}")
+    if max_iter is not None and (isinstance(max_iter, bool) or not isinstance(max_iter, int) or max_iter < 1):
+        raise ValueError(f"max_iter must be None or an integer >= 1; got {max_iter!r}")
     F, nb = form_factors.num_facets, form_factors.size
     r = as_real_tensor(reflectance, "reflectance")
     e0 = as_real_tensor(E0, "E0")
