@@ -26,12 +26,12 @@ from torch import Tensor
 
 from ._checks import check_count
 from .errors import ShapeError, ValueRangeError
+from .formfactors.basis import facet_rule
 from .formfactors.hemisphere import hemisphere_point_fractions
 from .formfactors.moments import MomentFormFactors
 from .formfactors.pairs import facing_pairs
-from .formfactors.rules import quadrature_rule
 from .formfactors.visibility import blocker_candidates
-from .geometry._polygon import bilinear, facing_any, plane_eps
+from .geometry._polygon import facing_any, plane_eps
 from .geometry.raycast import RayCaster
 from .geometry.scene import Scene
 from .lights import lit_fraction, shadow_candidates, sun_direction
@@ -47,13 +47,6 @@ def _project(K: MomentFormFactors, facets: Tensor, points: Tensor, weights: Tens
     return (psi * (weights * values)[..., None]).sum(1)
 
 
-def _gauss_points(sc: Scene, facets: Tensor, n: int) -> tuple[Tensor, Tensor]:
-    u, v, w = quadrature_rule("plain", n, torch.float64, torch.device("cpu"))
-    x, jac = bilinear(sc.corners[facets], u, v)
-    wq = w[None] * jac
-    return x, wq / wq.sum(1, keepdim=True)
-
-
 def _sun(sc: Scene, K: MomentFormFactors, d: Tensor, shadows: Literal["auto"] | bool,
          n: int) -> tuple[Tensor, Tensor]:
     d = d / d.norm()
@@ -65,7 +58,7 @@ def _sun(sc: Scene, K: MomentFormFactors, d: Tensor, shadows: Literal["auto"] | 
         return g, rough
     idx = shadow_candidates(sc, d, shadows)
     if idx.numel():
-        x, wq = _gauss_points(sc, idx, n)
+        x, wq = facet_rule(sc.corners[idx], n)
         caster = RayCaster(sc)
         inside = x + 1e-9 * (sc.centroids[idx][:, None] - x) + caster.eps * sc.normals[idx][:, None]  # off the facet
         hit = caster.first_hit(inside.reshape(-1, 3).numpy(), (-d).expand(inside.shape[0] * inside.shape[1], 3).numpy())

@@ -187,8 +187,7 @@ def refine_moments(pb: Problem, *, max_unknowns: int, max_iterations: int, show:
     pieces, piece_user = split_at_contacts(pb.scene)
     leaves = Leaves(pieces, piece_user.to(pb.scene.device))
     share = pb.accuracy * (pb.budget["discretisation"] + pb.budget.get("sparsification", 0.0))
-    r_max = float(pb.r.max()) if pb.r.numel() else 0.0
-    share = min(share, pb.accuracy - kernel_part(pb.quadrature_tol, r_max))
+    share = min(share, pb.accuracy - kernel_part(pb))
     max_leaves = max(pieces.num_facets, max_unknowns // 6)
     history: list[dict[str, float]] = []
     reason = ""
@@ -215,14 +214,13 @@ def refine_moments(pb: Problem, *, max_unknowns: int, max_iterations: int, show:
     bar.close()
     ray = torch.zeros(pb.F, dtype=torch.float64)
     vis, sky = VISIBILITY_SAMPLES, SKY_SAMPLES
-    r_max = float(pb.r.max()) if pb.r.numel() else 0.0
     while bool(lv.full.info["occluded_facets"].any()):
         # sampled visibility (and the sky's escaping rays there): measure its part at the last level, with another
         # seed and more sky directions; while it keeps the total above the request, sample more
         check = _level(pb, leaves, share, seed=1, sky_samples=sky * 3 // 2, visibility=vis, like=lv.full,
                        degree=lv.degree)
         ray = relative_change(check.x, lv.x)
-        if rms(est) + rms(ray) + kernel_part(pb.quadrature_tol, r_max) <= pb.accuracy or vis >= MAX_VISIBILITY_SAMPLES:
+        if rms(est) + rms(ray) + kernel_part(pb) <= pb.accuracy or vis >= MAX_VISIBILITY_SAMPLES:
             break
         vis, sky = 2 * vis, 2 * sky
         lv = _level(pb, leaves, share, sky_samples=sky, visibility=vis, like=lv.full)
@@ -240,12 +238,14 @@ def moment_quadrature_tol(accuracy: float) -> float:
     return min(1e-5, max(1e-8, 1e-2 * accuracy))
 
 
-def kernel_part(tol: float, r_max: float) -> float:
+def kernel_part(pb: Problem) -> float:
     """The allowance reported for the kernel's error: its tolerance amplified by the interreflections,
-    ``tol / (1 − r_max)`` (at most 20 ×). A measured allowance, not a bound: far pairs are integrated to
+    ``tol / (1 − r_max)`` (at most 20 ×; ``r_max`` the largest planning reflectance). A measured allowance, not a
+    bound: far pairs are integrated to
     :data:`~torch_interreflect.formfactors.moments.FAR_TOL_FACTOR` times the tolerance, and on the 200-facet V-groove
     the output moves by 5e-6 between tolerances 1e-5 and 1e-8."""
-    return tol / max(1.0 - r_max, 0.05)
+    r_max = float(pb.r.max()) if pb.r.numel() else 0.0
+    return pb.quadrature_tol / max(1.0 - r_max, 0.05)
 
 
 def polynomial_allowed(basis: str, scene: Scene, light: Any) -> bool:
@@ -293,8 +293,7 @@ def moment_report(pb: Problem, st: MomentRefinement, method: str, solver_tol: fl
     measured at the last step, and the quadrature tolerance as the kernel's bound (the dense solve is direct; CG
     stops at ``solver_tol``)."""
     solver = 0.0 if method == "dense" else solver_tol
-    r_max = float(pb.r.max()) if pb.r.numel() else 0.0
-    parts = {"discretisation": rms(st.est), "form_factors": kernel_part(pb.quadrature_tol, r_max),
+    parts = {"discretisation": rms(st.est), "form_factors": kernel_part(pb),
              "sparsification": 0.0, "solver": solver, "wavelengths": 0.0, "light": rms(st.ray)}
     total = sum(parts.values())
     per_facet = st.est + st.ray + (total - parts["discretisation"] - parts["light"])

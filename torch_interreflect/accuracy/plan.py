@@ -26,6 +26,7 @@ from ..solver.api import solve
 from ..solver.moments import DENSE_MAX_UNKNOWNS, solve_moments
 from .leaves import light_factor, rms
 from .moments_plan import (
+    leaf_light,
     moment_quadrature_tol,
     moment_report,
     polynomial_allowed,
@@ -245,10 +246,7 @@ class Plan:
 
     def _leaf_light(self) -> Any:
         """The light on the leaves: per-user-facet tensors (a factor or a mask) follow each leaf's user facet."""
-        light = self.light
-        if isinstance(light, Tensor) and light.ndim == 1 and light.numel() == self.scene.num_facets != 3:
-            return light.to(self.leaf_user.device)[self.leaf_user]
-        return light
+        return leaf_light(self.light, self.leaf_user, self.scene.num_facets)
 
 
 def _dense(m: Tensor) -> Tensor:

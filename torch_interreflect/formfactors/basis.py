@@ -22,7 +22,7 @@ from ..geometry._polygon import bilinear
 from ..geometry.scene import Scene
 from .rules import quadrature_rule
 
-__all__ = ["DEGREES", "FacetBasis", "basis_size", "facet_basis"]
+__all__ = ["DEGREES", "FacetBasis", "basis_size", "facet_basis", "facet_rule"]
 
 #: Supported total degrees and the number of basis functions of each.
 DEGREES = {0: 1, 1: 3, 2: 6}
@@ -114,6 +114,20 @@ class FacetBasis:
         return (self.transform[idx] @ _monomials(p, q, self.degree)[..., None])[..., 0]
 
 
+def facet_rule(corners: Tensor, n: int) -> tuple[Tensor, Tensor]:
+    """An ``n × n`` Gauss rule on each facet's bilinear map: points ``[k, n², 3]`` and area weights normalised to a
+    mean, ``[k, n²]`` summing to 1 per facet (float64 when the corners are).
+
+    Args:
+        corners: Facet corners ``[k, 4, 3]`` (triangles repeat their last corner).
+        n: Points per side.
+    """
+    u, v, w = quadrature_rule("plain", n, corners.dtype, corners.device)
+    x, jac = bilinear(corners, u, v)
+    wq = w[None] * jac
+    return x, wq / wq.sum(1, keepdim=True)
+
+
 def facet_basis(scene: Scene, degree: int = 2) -> FacetBasis:
     """The orthonormal polynomial basis of total degree ``degree`` on every facet of ``scene``.
 
@@ -143,10 +157,7 @@ def facet_basis(scene: Scene, degree: int = 2) -> FacetBasis:
     e1 = e1 / e1.norm(dim=-1, keepdim=True).clamp_min(1e-300)
     e2 = torch.linalg.cross(n, e1, dim=-1)
     scale = sc.areas.detach().sqrt()
-    u, v, w = quadrature_rule("plain", _GRAM_ORDER, torch.float64, torch.device("cpu"))
-    y, jac = bilinear(corners, u, v)  # [F, Q, 3], [F, Q]
-    wq = w[None] * jac
-    wq = wq / wq.sum(1, keepdim=True)
+    y, wq = facet_rule(corners, _GRAM_ORDER)  # [F, Q, 3], [F, Q]
     d = y - c[:, None]
     p = (d * e1[:, None]).sum(-1) / scale[:, None]
     q = (d * e2[:, None]).sum(-1) / scale[:, None]
