@@ -294,7 +294,7 @@ def plan(
     if quadratic and basis == "auto":
         # one solve on the constant basis, with its a-priori estimate, is cheaper still where it already meets the
         # request (dark scenes: 30 ms against 0.2 s for the 200-facet grooves at r = 0.2); it costs 10-30 ms where
-        # it does not. Then the light's roughness decides.
+        # it does not. Then the light's roughness decides how the polynomial basis estimates its error.
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", AccuracyWarning)
             probe = plan(scene, reflectance, light, illuminant, camera, accuracy=accuracy, wavelengths=wavelengths,
@@ -302,15 +302,10 @@ def plan(
                          basis="constant")
         if probe.report.reached:
             return probe
-        quadratic = smooth_light(scene, light)
     pb = _problem(scene, reflectance, light, illuminant, camera, accuracy, wavelengths, extrapolate and not quadratic)
     show = progress if progress is not None else scene.num_facets >= 2000 or accuracy < 3e-3
     if quadratic:
-        chosen = _plan_quadratic(pb, light, max_facets, max_iterations, show, t_start, basis == "auto")
-        if chosen is not None:
-            return chosen
-        # a rough light that the first test missed (a shadow edge between its 4 × 4 rays): the constant basis
-        pb = _problem(scene, reflectance, light, illuminant, camera, accuracy, wavelengths, extrapolate)
+        return _plan_quadratic(pb, light, max_facets, max_iterations, show, t_start, not smooth_light(scene, light))
     with warnings.catch_warnings():
         # the planning solves (each level, the a-priori estimate) would each repeat the solver's closure-error
         # warning of the same form factors; the solve of the chosen plan (Plan.apply) raises it once
@@ -355,23 +350,20 @@ def plan(
 
 
 def _plan_quadratic(pb: Problem, light: Any, max_facets: int, max_iterations: int, show: bool, t_start: float,
-                    auto: bool) -> Plan | None:
-    """:func:`plan` on the polynomial basis (:mod:`.moments_plan`); ``None`` when ``auto`` and the light turned out
-    rough over some leaf (the caller plans on the constant basis then)."""
+                    halving: bool) -> Plan:
+    """:func:`plan` on the polynomial basis (:mod:`.moments_plan`); ``halving``: the light is rough over some piece
+    (:func:`~.moments_plan.smooth_light`), so the error is estimated from splitting leaves, not from the degrees."""
     pb.quadrature_tol = moment_quadrature_tol(pb.accuracy)
-    st = refine_moments(pb, max_unknowns=max_facets, max_iterations=max_iterations, show=show, t_start=t_start)
+    kw = {"max_unknowns": max_facets, "max_iterations": max_iterations, "show": show, "t_start": t_start}
+    st = refine_moments(pb, halving=halving, **kw)
+    if st.rough is not None and bool(st.rough.any()):
+        # a rough light that the first test missed (a shadow edge between its 4 × 4 rays): the degrees' difference
+        # does not bound the error there
+        st = refine_moments(pb, halving=True, **kw)
     n = st.leaves.scene.num_facets
     method = "dense" if st.K.size * n <= DENSE_MAX_UNKNOWNS else "cg"
     tol = solver_tolerance(pb.accuracy)
     report = moment_report(pb, st, method, tol, t_start)
-    if st.rough is not None and bool(st.rough.any()):
-        if auto:
-            return None
-        warnings.warn(
-            f"render(basis='quadratic'): the light is rough over {int(st.rough.sum())} user facets (a shadow edge "
-            "crosses a leaf, or a sky or area light reaches it through blockable pairs), where the quadratic basis's "
-            "estimate can be far under the actual error; basis='auto' plans such scenes on the constant basis",
-            AccuracyWarning, stacklevel=3)
     if not report.reached:
         why = st.reason or _over_budget(report)
         warnings.warn(
