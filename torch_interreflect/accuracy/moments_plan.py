@@ -264,7 +264,7 @@ def refine_moments(pb: Problem, *, max_unknowns: int, max_iterations: int, show:
     while bool(lv.full.info["occluded_facets"].any()):
         # sampled visibility and the sky's escaping rays there: measure their parts at the last level, apart (other
         # rays, more sky directions); while they keep the total above the request, sample more of each
-        parts, cost = [ray, ray], [0.0, 0.0]
+        parts, cost = [torch.zeros_like(ray), torch.zeros_like(ray)], [0.0, 0.0]
         checks = [{"seed": 1, "visibility": vis, "like": lv.full}]
         if isinstance(pb.light, str) and pb.light == "sky":
             checks.append({"sky_samples": sky * 3 // 2, "moments": lv.full})
