@@ -156,6 +156,19 @@ def test_unreachable_request_warns_and_says_why(groove):
     assert not out.report.reached and out.report.leaves <= 10
 
 
+def test_an_unreachable_request_under_a_sky_warns_without_more_rays():
+    """Stopped before its first split, the halving estimate is unknown (infinite): the plan warns and does not grow
+    the rays (the discretisation alone is above the request)."""
+    box = ti.scenes.cornell_box(light=False, dtype=D)
+    with pytest.warns(AccuracyWarning, match="max_iterations"):
+        out = ti.render(box, torch.full((box.num_facets,), 0.5, dtype=D), "sky", ONE, wavelengths=WL,
+                        accuracy=1e-3, max_iterations=0)
+    rep = out.report
+    assert rep.degree == 2 and not rep.reached and rep.estimated == float("inf") and rep.leaves == 50
+    assert all("visibility_samples" not in h for h in rep.history)
+    assert bool(torch.isfinite(out.irradiance).all())
+
+
 def test_contacts_among_occluders_are_planned_by_halving():
     """The Cornell box's blocks stand on its floor among occluders: under uniform light the degrees' difference was
     measured at 0.14 % against an actual 0.38 % (1e-3, 1,208 leaves), so ``auto`` estimates from splitting the
