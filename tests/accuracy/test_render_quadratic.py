@@ -94,8 +94,8 @@ def test_a_shadow_edge_is_planned_by_halving():
 @pytest.mark.parametrize("name", ["cornell_sky_r9", "cornell_sky_r2"])
 def test_the_cornell_box_under_a_sky_meets_the_request(name):
     """Against the stored converged Mitsuba reference (noise 0.02 %): the sky through blockable pairs and the blocks'
-    contacts make the light rough, so ``auto`` plans by halving. Measured at 1e-2: 0.46 % (r = 0.9) and 0.41 %
-    (r = 0.2) from Mitsuba in 200-212 leaves, estimated 0.97 % and 0.99 % (the constant basis had taken 4,448 leaves
+    contacts make the light rough, so ``auto`` plans by halving. Measured at 1e-2: 0.15 % (r = 0.9) and 0.40 %
+    (r = 0.2) from Mitsuba in 236 leaves, estimated 0.79 % and 0.88 % (the constant basis had taken 4,448 leaves
     for 0.30 % at r = 0.9 and warned at r = 0.2 with an actual 3.4 %)."""
     import json
     from pathlib import Path

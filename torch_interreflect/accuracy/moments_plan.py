@@ -21,9 +21,9 @@ box under uniform light at 1e-3: estimated 0.14 %, actual 0.38 %). On such scene
 rough leaf found by the light's own shadow points) the planner estimates by *halving* instead: the first level is
 solved, every leaf is split in four and solved again, and a user facet's estimate is :data:`Q_HALVING` times the
 change of its output when its leaves were last split; the facets carrying the excess are split again. On the
-Cornell box under a sky at 1e-2 this reaches 0.41–0.46 % from Mitsuba with 200–212 leaves in about 3 s, estimated
-0.97–0.99 % (the constant basis took 4,448 leaves and 28 s for 0.30 % at r = 0.9, and warned at r = 0.2 with an
-actual 3.4 %).
+Cornell box under a sky at 1e-2 this reaches 0.15 % / 0.40 % from Mitsuba (r = 0.9 / 0.2) with 236 leaves in 9 s /
+3.5 s, estimated 0.79 % / 0.88 % (the constant basis took 4,448 leaves and 28 s for 0.30 % at r = 0.9, and warned
+at r = 0.2 with an actual 3.4 %).
 
 Rays (pairs that a third facet could block, and the sky's open part on their leaves where a facet's back may be in
 view) are sampled: at the last step the moments are computed again with other rays, and the light with more sky
