@@ -257,7 +257,7 @@ def refine_moments(pb: Problem, *, max_unknowns: int, max_iterations: int, show:
         if halving:
             before = lv.x
             lv = _level(pb, leaves, share, degree=DEGREE)
-            change = Q_HALVING * relative_change(lv.x, before)
+            change = Q_HALVING * relative_change(lv.x, before).cpu()  # F values: kept on the CPU
             est = torch.where(touched, change, torch.maximum(est, change))  # a neighbour's split moves it too
     bar.close()
     ray = torch.zeros(pb.F, dtype=torch.float64)
@@ -273,7 +273,7 @@ def refine_moments(pb: Problem, *, max_unknowns: int, max_iterations: int, show:
             t = time.perf_counter()
             check = _level(pb, leaves, share, degree=lv.degree, **({"sky_samples": sky} | kw))
             cost[i] = time.perf_counter() - t
-            parts[i] = relative_change(check.x, lv.x)
+            parts[i] = relative_change(check.x, lv.x).cpu()
         ray = parts[0] + parts[1]
         left = (pb.accuracy - rms(est) - kernel_part(pb)) / RAY_MARGIN
         if rms(ray) <= left * RAY_MARGIN or (vis >= MAX_VISIBILITY_SAMPLES and sky >= MAX_SKY_SAMPLES):
@@ -293,7 +293,8 @@ def refine_moments(pb: Problem, *, max_unknowns: int, max_iterations: int, show:
         history.append({"leaves": float(leaves.scene.num_facets), "estimated": rms(est),
                         "seconds": time.perf_counter() - t_start, "visibility_samples": float(vis),
                         "sky_samples": float(sky)})
-    return MomentRefinement(leaves, lv.K, lv.g, est, ray, it, reason, history, None if halving else lv.rough)
+    return MomentRefinement(leaves, lv.K, lv.g, est.cpu(), ray.cpu(), it, reason, history,
+                            None if halving else lv.rough)
 
 
 def _more_samples(vis_part: float, sky_part: float, vis_cost: float, sky_cost: float,
