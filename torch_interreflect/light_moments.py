@@ -7,10 +7,10 @@ of :func:`~torch_interreflect.formfactors.moment_form_factors` (``E0[(i, a)]`` =
   ``n × n`` Gauss rule on the facets that something could shadow (:func:`~torch_interreflect.lights.shadow_candidates`),
   1 elsewhere.
 - ``"sky"``: ``g_a = π mean_i(ψ_a · open)`` with ``open(x) = 1 − Σ_j F(x → j) − b(x)``; the first part is exact from
-  the moments (``Σ_j G[(i, a), (j, 0)]``); where the rows rest on ray-cast visibility, or where other facets' backs
-  may be in view, the open part at points of the facet comes from escaping (or back-hitting) cosine-weighted rays
-  instead (:func:`~torch_interreflect.formfactors.hemisphere.hemisphere_point_fractions`), as in
-  :func:`~torch_interreflect.lights.sky`.
+  the moments (``Σ_j G[(i, a), (j, 0)]``, also where rows rest on the moments' unbiased ray-cast visibility); where
+  other facets' backs may be in view, ``b`` comes from back-hitting cosine-weighted rays
+  (:func:`~torch_interreflect.formfactors.hemisphere.hemisphere_point_fractions`), or, on facets whose rows are
+  ray cast, the whole open part from escaping rays (both sides of every facet block the sky).
 - an area light (a mask ``[F]`` or a material name, radiance ``L``): ``g_a = π Σ_{j ∈ light} G[(i, a), (j, 0)]``.
 - a factor ``[F]`` per facet: constant over each facet, ``g = (g_i, 0, …)``.
 """
@@ -119,8 +119,8 @@ def light_moments(
         shadows: ``"auto"`` (shadow rays only where another facet is in front), ``True`` or ``False``.
         shadow_order: Gauss points per side of a facet for the sun's shadow rays (``shadow_order²`` rays).
         backfaces: The sky's back-face coverage, as in :func:`torch_interreflect.lights.sky`.
-        sky_samples, sky_points: Directions and points per axis of the sky's ray-cast open part (facets with
-            occluded pairs) and back coverage.
+        sky_samples, sky_points: Directions and points per axis of the sky's ray-cast back coverage (and open
+            part, on facets with occluded pairs and a back in view).
         direction: ``True``: ``light`` is a direction whatever the scene's facet count (three numbers are a factor
             per facet in a scene of 3 facets otherwise, as :func:`~torch_interreflect.lights.sun_direction` says);
             ``None``: decided by that rule.

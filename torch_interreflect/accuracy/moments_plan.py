@@ -89,7 +89,7 @@ SKY_SAMPLES, SKY_CHECK_SAMPLES = 16, 24
 #: Most directions per axis of the sky's ray-cast part (:data:`SKY_SAMPLES` at first).
 MAX_SKY_SAMPLES = 64
 
-#: Margin on the visibility rays chosen from a measured ray-cast part (it falls as one over the rays per side).
+#: Margin on the sample counts chosen from the measured ray-cast parts (each falls as one over its count per axis).
 RAY_MARGIN = 1.2
 
 #: Visibility rays per side of the target from each outer point of an occluded pair, at first and at most: while
@@ -275,12 +275,12 @@ def refine_moments(pb: Problem, *, max_unknowns: int, max_iterations: int, show:
             cost[i] = time.perf_counter() - t
             parts[i] = relative_change(check.x, lv.x).cpu()
         ray = parts[0] + parts[1]
-        left = (pb.accuracy - rms(est) - kernel_part(pb)) / RAY_MARGIN
-        if rms(ray) <= left * RAY_MARGIN or (vis >= MAX_VISIBILITY_SAMPLES and sky >= MAX_SKY_SAMPLES):
+        left = pb.accuracy - rms(est) - kernel_part(pb)
+        # done when the parts fit; nothing to gain when every count is at its most, or when the discretisation
+        # alone is above the request
+        if rms(ray) <= left or (vis >= MAX_VISIBILITY_SAMPLES and sky >= MAX_SKY_SAMPLES) or left <= 0:
             break
-        if left <= 0:  # the discretisation alone is above the request: more rays cannot reach it
-            break
-        more_vis, more_sky = _more_samples(rms(parts[0]), rms(parts[1]), cost[0], cost[1], left)
+        more_vis, more_sky = _more_samples(rms(parts[0]), rms(parts[1]), cost[0], cost[1], left / RAY_MARGIN)
         new_vis = _grown(vis, more_vis, MAX_VISIBILITY_SAMPLES)
         new_sky = _grown(sky, more_sky, MAX_SKY_SAMPLES)
         if (new_vis, new_sky) == (vis, sky):
@@ -301,9 +301,8 @@ def _more_samples(vis_part: float, sky_part: float, vis_cost: float, sky_cost: f
                   left: float) -> tuple[float, float]:
     """Factors on the visibility rays per side and on the sky's directions per axis that bring the two measured
     ray-cast parts (each falling as one over its factor) within ``left`` at the least cost (each cost growing as its
-    factor squared): ``f ∝ (part / cost)^(1/3)``, neither below 1; infinite where nothing is left."""
-    if left <= 0:
-        return math.inf, math.inf
+    factor squared): ``f ∝ (part / cost)^(1/3)``, neither below 1; infinite where one part alone exceeds ``left``
+    (``left > 0``)."""
     a = (vis_part / max(vis_cost, 1e-9)) ** (1 / 3)
     b = (sky_part / max(sky_cost, 1e-9)) ** (1 / 3)
     c = ((vis_part / a if a > 0 else 0.0) + (sky_part / b if b > 0 else 0.0)) / left
