@@ -157,21 +157,24 @@ class _Level:
 
 def _level(pb: Problem, leaves: Leaves, share: float, seed: int = 0, sky_samples: int = SKY_SAMPLES,
            visibility: int = VISIBILITY_SAMPLES, like: MomentFormFactors | None = None,
-           degree: int | None = None, moments: MomentFormFactors | None = None) -> _Level:
+           degree: int | None = None, moments: MomentFormFactors | None = None,
+           previous: MomentFormFactors | None = None) -> _Level:
     """Moments and light on ``leaves``; the outputs of degree 1 and 0, and of degree 2 unless the degree-1 estimate
     ``Q_LINEAR |x1 − x0|`` is within ``share``. ``like``: moments of these leaves whose unoccluded pairs are reused
     (only the occluded pairs' rays are drawn again,
     :func:`~torch_interreflect.formfactors.moments.resample_visibility`). ``degree``: only that degree's output (no
     estimate: a check of the rays). ``moments``: these leaves' moments, taken as they are (a check of the sky's
-    directions alone)."""
+    directions alone). ``previous``: the moments of the leaves before their last split, made with the same settings:
+    the pairs of two leaves kept by the split (``leaves.kept``) take their sums from there."""
     t = time.perf_counter()
     if moments is not None:
         K = moments
     elif like is not None:
         K = resample_visibility(like, seed=seed, visibility_samples=visibility)
     else:
+        reuse = None if previous is None or leaves.kept is None else (previous, leaves.kept)
         K = moment_form_factors(leaves.scene, DEGREE, quadrature_tol=pb.quadrature_tol, seed=seed,
-                                visibility_samples=visibility)
+                                visibility_samples=visibility, reuse=reuse)
     pb.seconds["form_factors"] += time.perf_counter() - t
     t = time.perf_counter()
     is_sun = sun_direction(pb.light, pb.F) is not None  # decided on the user's facets, not the leaves' count
@@ -233,9 +236,10 @@ def refine_moments(pb: Problem, *, max_unknowns: int, max_iterations: int, show:
     # halving: the error of a user facet is unknown (inf) until its leaves have been split once
     est = torch.full((pb.F,), math.inf, dtype=torch.float64)
     lv = _level(pb, leaves, share, degree=DEGREE) if halving else None
+    previous: MomentFormFactors | None = None
     while True:
         if lv is None or not halving:
-            lv = _level(pb, leaves, share)
+            lv = _level(pb, leaves, share, previous=previous)
             est = lv.est
         disc = rms(est)
         history.append({"leaves": float(leaves.scene.num_facets), "estimated": disc,
@@ -253,10 +257,11 @@ def refine_moments(pb: Problem, *, max_unknowns: int, max_iterations: int, show:
         touched = torch.zeros(pb.F, dtype=torch.bool)
         touched[leaves.user[sel].cpu()] = True
         leaves = split(leaves, sel)
+        previous = lv.full
         it += 1
         if halving:
             before = lv.x
-            lv = _level(pb, leaves, share, degree=DEGREE)
+            lv = _level(pb, leaves, share, degree=DEGREE, previous=previous)
             change = Q_HALVING * relative_change(lv.x, before).cpu()  # F values: kept on the CPU
             est = torch.where(touched, change, torch.maximum(est, change))  # a neighbour's split moves it too
     bar.close()

@@ -67,6 +67,10 @@ FAR_TOL_FACTOR = 100.0
 #: Rays cast at once (each is ~ 32 bytes in the buffers).
 RAY_CHUNK = 1 << 21
 
+#: ``info`` keys that hold the pairs' sums of :func:`moment_form_factors` (for :func:`resample_visibility` and
+#: ``reuse``): not carried over by :meth:`MomentFormFactors.truncate` and :meth:`MomentFormFactors.to`.
+_SUMS = ("_sums", "_moment_plan")
+
 
 def angular_orders(tol: float) -> tuple[int, int]:
     """Gauss points per panel of the inner angular rule: ``(regular, touching)`` pairs for an entry tolerance
@@ -134,12 +138,12 @@ class MomentFormFactors:
         m = self.matrix.reshape(F, nb, F, nb)[:, :nb_new, :, :nb_new].reshape(F * nb_new, F * nb_new).contiguous()
         b = self.basis
         basis = FacetBasis(degree, b.centroids, b.axes, b.scale, b.transform[:, :nb_new, :nb_new].contiguous())
-        info = {k: v for k, v in self.info.items() if k not in ("_sums", "_moment_plan")}
+        info = {k: v for k, v in self.info.items() if k not in _SUMS}
         return MomentFormFactors(m, self.areas, basis, info)
 
     def to(self, *args: Any, **kwargs: Any) -> MomentFormFactors:
         """Move/cast the matrix and areas like :meth:`torch.Tensor.to` (the basis stays float64 on the CPU)."""
-        info = {k: v for k, v in self.info.items() if k not in ("_sums", "_moment_plan")}
+        info = {k: v for k, v in self.info.items() if k not in _SUMS}
         return MomentFormFactors(self.matrix.to(*args, **kwargs), self.areas.to(*args, **kwargs), self.basis, info)
 
     def __repr__(self) -> str:
@@ -265,11 +269,11 @@ def _pairs(sc: Scene, degree: int, tol: float, eps: float, occlusion: Literal["a
     return {"dom": dom, "tgt": tgt, "need": need, "pairs": pairs, "fine": (touch | clip_d).numpy(),
             "rules": (off, ru, rv, rw, edge_rule, vertex_rule), "buf": buf,
             "angular": (*np.polynomial.legendre.leggauss(n_reg), *np.polynomial.legendre.leggauss(n_fine)),
-            "corners": sc.corners.contiguous().numpy(), "normals": sc.normals.contiguous().numpy()}
+            "corners": sc.corners.contiguous().numpy(), "normals": sc.normals.contiguous().numpy(),
+            "triangle": sc.is_triangle.cpu().numpy().astype(np.bool_), "scene": sc}
 
 
-def _cast(kern: Any, sc: Scene, setup: dict[str, Any], sel: np.ndarray, ns: int,
-          seed: int) -> tuple[np.ndarray, np.ndarray]:
+def _cast(kern: Any, setup: dict[str, Any], sel: np.ndarray, ns: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
     """Rays of the occluded pairs ``sel`` (every outer point to ``ns²`` jittered target samples), cast in chunks of
     whole pairs: each pair's first ray and the blocked flags."""
     counts = np.zeros(sel.size, dtype=np.int64)
@@ -282,9 +286,9 @@ def _cast(kern: Any, sc: Scene, setup: dict[str, Any], sel: np.ndarray, ns: int,
     blocked = np.zeros(int(per.sum()), dtype=np.bool_)
     if blocked.size == 0:
         return ray_start, blocked
-    caster = RayCaster(sc)
+    caster = RayCaster(setup["scene"])
     origin = np.asarray(caster.origin, dtype=np.float64)
-    tri = sc.is_triangle.cpu().numpy().astype(np.bool_)
+    tri = setup["triangle"]
     s0 = 0
     while s0 < sel.size:
         s1 = min(sel.size, s0 + max(1, int(np.searchsorted(np.cumsum(per[s0:]), RAY_CHUNK, side="right"))))
@@ -305,6 +309,7 @@ def moment_form_factors(
     occlusion: Literal["auto"] | bool = "auto",
     visibility_samples: int = 3,
     seed: int = 0,
+    reuse: tuple[MomentFormFactors, Tensor] | None = None,
 ) -> MomentFormFactors:
     """Galerkin moments ``G`` of the interreflection kernel on a polynomial basis of degree ``degree`` per facet.
 
@@ -318,13 +323,22 @@ def moment_form_factors(
         visibility_samples: Rays per side of the target from every outer point of an occluded pair
             (``visibility_samples²`` jittered strata).
         seed: Seed of the jitter (deterministic for a given seed).
+        reuse: ``(previous, kept)``: the moments of an earlier scene (straight from this function, with the same
+            ``degree``, ``quadrature_tol``, ``occlusion`` and ``visibility_samples``) whose facets ``kept [m]`` are
+            this scene's first ``m`` facets, unchanged (a refinement that split the others, as
+            :func:`torch_interreflect.accuracy.leaves.split` orders them). A pair of two such facets takes its sums
+            from ``previous`` (with its rays) when it needs rays there as here; only the other pairs are integrated.
+            Without occlusion the result is the same, bit for bit, as without ``reuse``.
 
     Returns:
         :class:`MomentFormFactors` with ``info``: ``pairs``, ``near``/``far``/``clipped`` counts, ``occluded_pairs``,
-        ``occluded_facets [F]`` (facets with a ray-cast pair), ``rays``, ``seconds``, ``quadrature_tol``.
+        ``occluded_facets [F]`` (facets with a ray-cast pair), ``rays``, ``seconds``, ``quadrature_tol``,
+        ``reused_pairs`` (pairs taken from ``reuse``) and ``settings``.
 
     Raises:
         ValueRangeError: a bad ``degree``, ``quadrature_tol`` or ``visibility_samples``.
+        ValueError: ``reuse`` whose moments do not hold their sums, were made with other settings, or whose
+            ``kept`` facets are not this scene's first facets.
         RuntimeError: the compiled loops are disabled (``TI_DISABLE_NUMBA=1``).
 
     Shape:
@@ -347,11 +361,16 @@ def moment_form_factors(
     check_count(visibility_samples, "visibility_samples", note=" (rays per side of the target)")
     kern = _kernel()
     sc = scene.to(torch.float64).to("cpu").detach()
+    settings = {"degree": int(degree), "quadrature_tol": float(quadrature_tol), "occlusion": occlusion,
+                "visibility_samples": int(visibility_samples)}
+    old_of = None if reuse is None else _reuse_map(sc, reuse, settings)
     setup = _pairs(sc, degree, quadrature_tol, plane_eps(scene), occlusion)
     basis = facet_basis(sc, degree)
-    todo = np.arange(setup["dom"].numel(), dtype=np.int64)
-    acc = np.zeros((todo.size, nb, nb))
-    total = _pair_sums(kern, sc, setup, basis, todo, int(visibility_samples), int(seed), acc)
+    acc = np.zeros((setup["dom"].numel(), nb, nb))
+    todo = np.arange(acc.shape[0], dtype=np.int64)
+    if reuse is not None and old_of is not None:
+        todo = _reused(setup, reuse[0].info["_sums"][1:], old_of, acc)
+    total = _pair_sums(kern, setup, basis, todo, int(visibility_samples), int(seed), acc)
     G = _assemble(kern, sc, setup, basis, acc)
     dom, tgt, need = setup["dom"], setup["tgt"], setup["need"]
     F = sc.num_facets
@@ -373,9 +392,60 @@ def moment_form_factors(
         "rays": total,
         "visibility_samples": int(visibility_samples),
         "seconds": time.perf_counter() - t_start,
-        "_sums": (sc, setup, acc),  # for resample_visibility: the pairs and their sums
+        "reused_pairs": int(acc.shape[0] - todo.size),
+        "settings": settings,
+        "_sums": (sc, setup, acc),  # for resample_visibility and reuse: the pairs and their sums
     }
     return MomentFormFactors(matrix, scene.areas.detach().to(scene.dtype), basis, info)
+
+
+def _reuse_map(sc: Scene, reuse: tuple[MomentFormFactors, Tensor], settings: dict[str, Any]) -> np.ndarray:
+    """Each facet's index among the previous moments' facets (``-1``: new), once ``reuse`` is checked."""
+    previous, kept = reuse
+    if not isinstance(previous, MomentFormFactors) or "_sums" not in previous.info:
+        raise ValueError("reuse needs moments straight from moment_form_factors (they keep their pairs' sums); got "
+                         f"{type(previous).__name__} without them")
+    if previous.info.get("settings") != settings:
+        raise ValueError(f"reuse needs moments made with the same settings {settings}; got "
+                         f"{previous.info.get('settings')}")
+    kept = torch.as_tensor(kept).reshape(-1).to(torch.int64).cpu()
+    old_sc = previous.info["_sums"][0]
+    if kept.numel() > sc.num_facets or (kept.numel() and (int(kept.min()) < 0 or int(kept.max()) >= old_sc.num_facets)):
+        raise ValueError(f"reuse's kept must index the previous moments' {old_sc.num_facets} facets, at most one per "
+                         f"facet of this scene ({sc.num_facets}); got {kept.numel()} indices in "
+                         f"[{int(kept.min()) if kept.numel() else 0}, {int(kept.max()) if kept.numel() else 0}]")
+    if not torch.equal(sc.corners[: kept.numel()], old_sc.corners[kept]):
+        raise ValueError("reuse's kept facets must be this scene's first facets, unchanged; their corners differ")
+    old_of = np.full(sc.num_facets, -1, dtype=np.int64)
+    old_of[: kept.numel()] = kept.numpy()
+    return old_of
+
+
+def _reused(setup: dict[str, Any], old: tuple[dict[str, Any], np.ndarray], old_of: np.ndarray,
+            acc: np.ndarray) -> np.ndarray:
+    """Copy into ``acc`` the sums of the pairs whose two facets are among the previous pairs ``old = (setup, acc)``
+    (``old_of``: each facet's previous index, ``-1`` if new) and need rays there as here; the pairs left to do."""
+    old_setup, old_acc = old
+    dom, tgt = setup["dom"].numpy(), setup["tgt"].numpy()
+    od, ot = old_of[dom], old_of[tgt]
+    cand = np.nonzero((od >= 0) & (ot >= 0))[0]
+    odom, otgt = old_setup["dom"].numpy(), old_setup["tgt"].numpy()
+    todo = np.ones(dom.size, dtype=bool)
+    if cand.size and odom.size:
+        n = int(max(odom.max(), otgt.max())) + 1  # old facet indices: a key per unordered pair
+        okey = np.minimum(odom, otgt) * n + np.maximum(odom, otgt)
+        order = np.argsort(okey)
+        sorted_key = okey[order]
+        key = np.minimum(od[cand], ot[cand]) * n + np.maximum(od[cand], ot[cand])
+        pos = np.minimum(np.searchsorted(sorted_key, key), order.size - 1)
+        found = sorted_key[pos] == key
+        p, q = cand[found], order[pos[found]]
+        same = setup["need"].numpy()[p] == old_setup["need"].numpy()[q]
+        p, q = p[same], q[same]
+        turned = odom[q] != od[p]  # domain and target swapped: the monomial sums transposed
+        acc[p] = np.where(turned[:, None, None], old_acc[q].transpose(0, 2, 1), old_acc[q])
+        todo[p] = False
+    return np.nonzero(todo)[0].astype(np.int64)
 
 
 def resample_visibility(moments: MomentFormFactors, *, seed: int, visibility_samples: int | None = None
@@ -398,24 +468,25 @@ def resample_visibility(moments: MomentFormFactors, *, seed: int, visibility_sam
     kern = _kernel()
     todo = torch.nonzero(setup["need"]).reshape(-1).numpy().astype(np.int64)
     acc = acc.copy()
-    rays = _pair_sums(kern, sc, setup, moments.basis, todo, ns, int(seed), acc)
+    rays = _pair_sums(kern, setup, moments.basis, todo, ns, int(seed), acc)
     G = _assemble(kern, sc, setup, moments.basis, acc)
+    settings = dict(moments.info.get("settings", {}), visibility_samples=ns)
     info = dict(moments.info, rays=rays, visibility_samples=ns, seconds=time.perf_counter() - t0,
-                _sums=(sc, setup, acc))
+                _sums=(sc, setup, acc), settings=settings, reused_pairs=0)
     info.pop("_moment_plan", None)
     matrix = torch.from_numpy(G).to(dtype=moments.dtype, device=moments.device)
     return MomentFormFactors(matrix, moments.areas, moments.basis, info)
 
 
-def _pair_sums(kern: Any, sc: Scene, setup: dict[str, Any], basis: FacetBasis, todo: np.ndarray, ns: int, seed: int,
+def _pair_sums(kern: Any, setup: dict[str, Any], basis: FacetBasis, todo: np.ndarray, ns: int, seed: int,
                acc: np.ndarray) -> int:
     """Fill ``acc[todo]`` with the pairs' monomial sums (rays cast for the occluded ones among them); the ray count."""
     need = setup["need"].numpy()
     sel = todo[need[todo]]
     sel_of = np.full(setup["dom"].numel(), -1, dtype=np.int64)
     sel_of[sel] = np.arange(sel.size)
-    ray_start, blocked = _cast(kern, sc, setup, sel, ns, seed)
-    tri = sc.is_triangle.cpu().numpy().astype(np.bool_)
+    ray_start, blocked = _cast(kern, setup, sel, ns, seed)
+    tri = setup["triangle"]
     if todo.size:
         launch(kern.pair_moments, todo, *setup["pairs"], setup["fine"], *setup["rules"], setup["corners"],
                setup["normals"], basis.centroids.numpy(), basis.axes[:, 0].contiguous().numpy(),

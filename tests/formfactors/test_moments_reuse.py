@@ -1,0 +1,127 @@
+"""Moments reused across a refinement (``moment_form_factors(..., reuse=(previous, kept))``): the pairs of two
+unchanged facets take their sums from the previous moments, and nothing else changes."""
+
+import math
+
+import pytest
+import torch
+
+import torch_interreflect as ti
+from torch_interreflect.accuracy import moments_plan
+from torch_interreflect.accuracy.leaves import Leaves, split
+from torch_interreflect.formfactors import moment_form_factors
+from torch_interreflect.formfactors.compiled import loops
+
+pytestmark = pytest.mark.skipif(loops("moments") is None, reason="the moments need numba")
+D = torch.float64
+
+
+def _blocks(K, n):
+    nb = K.size
+    return K.matrix.reshape(n, nb, n, nb).permute(0, 2, 1, 3)  # [i, j, a, b]
+
+
+def _occluded_scene():
+    """A floor and a ceiling with a blocker between them (occluded pairs), and a wall that nothing blocks."""
+    sq = [[-0.5, -0.5, 0.0], [0.5, -0.5, 0.0], [0.5, 0.5, 0.0], [-0.5, 0.5, 0.0]]
+    ceiling = [[x, y, 1.0] for x, y, _ in sq[::-1]]
+    blocker = [[-0.8, -0.8, 0.5], [0.1, -0.8, 0.5], [0.1, 0.3, 0.5], [-0.8, 0.3, 0.5]]
+    side = [[0.7, -0.5, 0.0], [0.7, 0.5, 0.0], [0.7, 0.5, 1.0], [0.7, -0.5, 1.0]]
+    scene = ti.Scene.from_polygons(torch.tensor([sq, ceiling, blocker, blocker[::-1], side], dtype=D))
+    return scene.subdivide(2)[0]
+
+
+def _split_some(scene, every=5):
+    leaves = Leaves(scene, torch.arange(scene.num_facets))
+    return split(leaves, torch.arange(scene.num_facets) % every == 0)
+
+
+@pytest.mark.parametrize("degree", [0, 2])
+def test_reuse_without_occlusion_is_bit_identical(degree):
+    """On a groove (no third facet) the moments with ``reuse`` equal a fresh computation bit for bit, and every pair
+    of two kept facets is reused."""
+    scene = ti.scenes.v_groove(30.0, divisions=4, dtype=D)
+    previous = moment_form_factors(scene, degree)
+    leaves = _split_some(scene)
+    fresh = moment_form_factors(leaves.scene, degree)
+    again = moment_form_factors(leaves.scene, degree, reuse=(previous, leaves.kept))
+    assert torch.equal(again.matrix, fresh.matrix)
+    m = leaves.kept.numel()
+    _, setup, _ = fresh.info["_sums"]
+    both_kept = int(((setup["dom"] < m) & (setup["tgt"] < m)).sum())
+    assert again.info["reused_pairs"] == both_kept > 0
+    assert fresh.info["reused_pairs"] == 0
+
+
+def test_reuse_keeps_the_previous_rays():
+    """With occlusion, the blocks of two kept facets are the previous ones exactly (their rays are not drawn again),
+    those of a new facet are computed (here with other rays: another seed)."""
+    scene = _occluded_scene()
+    previous = moment_form_factors(scene, 2, seed=0)
+    assert previous.info["occluded_pairs"] > 0
+    leaves = _split_some(scene)
+    kept = leaves.kept
+    m = kept.numel()
+    with pytest.raises(ValueError, match="same settings"):
+        moment_form_factors(leaves.scene, 2, seed=0, visibility_samples=4, reuse=(previous, kept))
+    again = moment_form_factors(leaves.scene, 2, seed=0, reuse=(previous, kept))
+    old = _blocks(previous, scene.num_facets)[kept][:, kept]
+    assert torch.equal(_blocks(again, leaves.scene.num_facets)[:m, :m], old)
+    fresh = moment_form_factors(leaves.scene, 2, seed=0)
+    # the fresh call draws other rays for the kept occluded pairs (the jitter is seeded by the pair's index)
+    assert not torch.equal(_blocks(fresh, leaves.scene.num_facets)[:m, :m], old)
+    new = _blocks(again, leaves.scene.num_facets)[:, m:]
+    assert torch.equal(new, _blocks(fresh, leaves.scene.num_facets)[:, m:])  # new facets: as a fresh call
+
+
+def test_reuse_with_the_facets_in_another_order():
+    """Kept facets in the reverse order: pairs whose domain and target swap take the transposed sums. The result is
+    the previous matrix permuted (to rounding: the blocks are multiplied out in the other order) and agrees with a
+    fresh computation to the quadrature's accuracy."""
+    scene = ti.scenes.v_groove(45.0, divisions=2, dtype=D)
+    previous = moment_form_factors(scene, 2, quadrature_tol=1e-9)
+    order = torch.arange(scene.num_facets - 1, -1, -1)
+    permuted = ti.Scene.from_parts(scene.corners[order], scene.is_triangle[order], None, None)
+    again = moment_form_factors(permuted, 2, quadrature_tol=1e-9, reuse=(previous, order))
+    n = scene.num_facets
+    assert again.info["reused_pairs"] == again.info["pairs"]
+    assert torch.allclose(_blocks(again, n), _blocks(previous, n)[order][:, order], rtol=1e-14, atol=1e-16)
+    fresh = moment_form_factors(permuted, 2, quadrature_tol=1e-9)
+    assert torch.allclose(again.matrix, fresh.matrix, rtol=0, atol=1e-9)
+
+
+def test_reuse_rejects_what_it_cannot_use():
+    scene = ti.scenes.v_groove(45.0, divisions=2, dtype=D)
+    K = moment_form_factors(scene, 2)
+    leaves = _split_some(scene, every=2)
+    with pytest.raises(ValueError, match="straight from moment_form_factors"):
+        moment_form_factors(leaves.scene, 2, reuse=(K.truncate(1), leaves.kept))
+    with pytest.raises(ValueError, match="same settings"):
+        moment_form_factors(leaves.scene, 2, quadrature_tol=1e-4, reuse=(K, leaves.kept))
+    with pytest.raises(ValueError, match="first facets, unchanged"):
+        moment_form_factors(leaves.scene, 2, reuse=(K, leaves.kept.flip(0)))
+    with pytest.raises(ValueError, match="must index"):
+        moment_form_factors(leaves.scene, 2, reuse=(K, leaves.kept + scene.num_facets))
+
+
+def test_the_planner_reuses_and_gives_the_same_answer(monkeypatch):
+    """``render`` on the quadratic basis reuses the previous level's moments after a split; on an unoccluded groove its
+    answer is bit for bit that of the planner without reuse."""
+    groove = ti.scenes.v_groove(60.0, size=(1.0, 1.0), divisions=2, dtype=D)
+    args = (groove, torch.full((8,), 0.9, dtype=D), "uniform", torch.ones(1, dtype=D))
+    kw = {"wavelengths": torch.tensor([550.0], dtype=D), "accuracy": 1e-4, "basis": "quadratic"}
+    reused = []
+    real = moments_plan.moment_form_factors
+
+    def counting(*a, **k):
+        K = real(*a, **k)
+        reused.append(K.info["reused_pairs"])
+        return K
+
+    monkeypatch.setattr(moments_plan, "moment_form_factors", counting)
+    out = ti.render(*args, **kw)
+    assert out.report.iterations >= 1 and max(reused) > 0
+    monkeypatch.setattr(moments_plan, "moment_form_factors", lambda *a, reuse=None, **k: real(*a, **k))
+    plain = ti.render(*args, **kw)
+    assert torch.equal(out.irradiance, plain.irradiance)
+    assert math.isclose(out.report.estimated, plain.report.estimated, rel_tol=0, abs_tol=0)
