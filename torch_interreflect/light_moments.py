@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from dataclasses import dataclass
 from typing import Literal
 
 import torch
@@ -36,7 +37,7 @@ from .geometry.raycast import RayCaster
 from .geometry.scene import Scene
 from .lights import lit_fraction, shadow_candidates, sun_direction
 
-__all__ = ["light_is_rough", "light_moments"]
+__all__ = ["SkyRays", "light_is_rough", "light_moments", "sky_rays"]
 
 
 def _project(K: MomentFormFactors, facets: Tensor, points: Tensor, weights: Tensor, values: Tensor) -> Tensor:
@@ -68,12 +69,55 @@ def _sun(sc: Scene, K: MomentFormFactors, d: Tensor, shadows: Literal["auto"] | 
     return g, rough
 
 
-def _sky(sc: Scene, K: MomentFormFactors, backfaces: Literal["auto"] | bool, samples: int, points: int) -> Tensor:
-    nb, F = K.size, sc.num_facets
-    G = K.matrix.detach().to(torch.float64).cpu()
-    covered = G.reshape(F, nb, F, nb)[:, :, :, 0].sum(2)  # mean_i(ψ_a Σ_j F(x → j))
-    g = -covered
-    g[:, 0] += 1.0
+@dataclass
+class SkyRays:
+    """The ray-cast part of the sky's moments: on ``escape_ids`` the open part's moments ``[k, nb]`` counted from
+    escaping rays, on ``back_ids`` the back coverage's moments ``[k', nb]`` from back-hitting rays (float64, CPU;
+    :func:`sky_rays`). Estimates made with different ``seed`` are independent replicas: :meth:`mean` averages two
+    (the sky's moments are affine in them, so the light of the mean is the mean of the lights)."""
+
+    escape_ids: Tensor
+    escape: Tensor
+    back_ids: Tensor
+    back: Tensor
+
+    def mean(self, other: SkyRays) -> SkyRays:
+        """The average of two replicas on the same facets.
+
+        Raises:
+            ValueError: the replicas cover other facets.
+        """
+        if not (torch.equal(self.escape_ids, other.escape_ids) and torch.equal(self.back_ids, other.back_ids)):
+            raise ValueError("SkyRays.mean needs two replicas on the same facets (the same moments' leaves); got "
+                             f"{self.escape_ids.numel()}/{self.back_ids.numel()} and "
+                             f"{other.escape_ids.numel()}/{other.back_ids.numel()} escape/back facets that differ")
+        return SkyRays(self.escape_ids, 0.5 * (self.escape + other.escape), self.back_ids,
+                       0.5 * (self.back + other.back))
+
+
+def sky_rays(scene: Scene, form_factors: MomentFormFactors, *, backfaces: Literal["auto"] | bool = "auto",
+             samples: int = 16, points: int = 8, seed: int = 0) -> SkyRays:
+    """The sky's ray-cast part on the facets where the moments' row sums do not give the open part: where some
+    facet's back may be in view (``backfaces``), the whole open part from escaping rays on facets whose rows are ray
+    cast, and elsewhere the back coverage from back-hitting rays (both sides of every facet block the sky).
+
+    Args:
+        scene: The scene of the moments.
+        form_factors: Its :class:`~torch_interreflect.formfactors.moments.MomentFormFactors`.
+        backfaces: As for :func:`light_moments`.
+        samples, points: Directions and points per axis (``samples² · points²`` rays per facet).
+        seed: The samples' rotation (:func:`~torch_interreflect.formfactors.hemisphere.hemisphere_point_fractions`).
+
+    Returns:
+        :class:`SkyRays`.
+
+    Shape:
+        - ``escape``: ``[k, nb]``, ``back``: ``[k', nb]``
+    """
+    check_count(samples, "sky_samples")
+    check_count(points, "sky_points")
+    sc = scene.detach().to(torch.float64).to("cpu")
+    K, F = form_factors, sc.num_facets
     occ = K.info.get("occluded_facets")
     occ = occ.cpu() if isinstance(occ, Tensor) else torch.zeros(F, dtype=torch.bool)
     # where rows rest on ray-cast visibility (occluded pairs), the moments' unbiased estimate makes 1 − Σ_j F as good
@@ -86,12 +130,27 @@ def _sky(sc: Scene, K: MomentFormFactors, backfaces: Literal["auto"] | bool, sam
     escape_ids = torch.nonzero(occ & maybe_back).reshape(-1)
     back_ids = torch.nonzero(maybe_back & ~occ).reshape(-1)
     caster = RayCaster(sc) if escape_ids.numel() or back_ids.numel() else None
+    escape = torch.zeros(0, K.size, dtype=torch.float64)
+    back = torch.zeros(0, K.size, dtype=torch.float64)
     if escape_ids.numel():
-        h = hemisphere_point_fractions(sc, escape_ids, samples=samples, points=points, back=False, caster=caster)
-        g[escape_ids] = _project(K, escape_ids, h["points"], h["weights"], h["escape"])
+        h = hemisphere_point_fractions(sc, escape_ids, samples=samples, points=points, back=False, caster=caster,
+                                       seed=seed)
+        escape = _project(K, escape_ids, h["points"], h["weights"], h["escape"])
     if back_ids.numel():
-        h = hemisphere_point_fractions(sc, back_ids, samples=samples, points=points, escape=False, caster=caster)
-        g[back_ids] -= _project(K, back_ids, h["points"], h["weights"], h["back"])
+        h = hemisphere_point_fractions(sc, back_ids, samples=samples, points=points, escape=False, caster=caster,
+                                       seed=seed)
+        back = _project(K, back_ids, h["points"], h["weights"], h["back"])
+    return SkyRays(escape_ids, escape, back_ids, back)
+
+
+def _sky(K: MomentFormFactors, rays: SkyRays) -> Tensor:
+    nb, F = K.size, K.num_facets
+    G = K.matrix.detach().to(torch.float64).cpu()
+    covered = G.reshape(F, nb, F, nb)[:, :, :, 0].sum(2)  # mean_i(ψ_a Σ_j F(x → j))
+    g = -covered
+    g[:, 0] += 1.0
+    g[rays.escape_ids] = rays.escape
+    g[rays.back_ids] -= rays.back
     return math.pi * g
 
 
@@ -107,6 +166,8 @@ def light_moments(
     sky_points: int = 8,
     rough: bool = False,
     direction: bool | None = None,
+    sky_seed: int = 0,
+    sky: SkyRays | None = None,
 ) -> Tensor | tuple[Tensor, Tensor]:
     """The geometric factor of a light on the polynomial basis: ``e0[..., i, a, :] = g[i, a] · spectrum``.
 
@@ -127,6 +188,9 @@ def light_moments(
         rough: Also return, per facet, whether the light is not smooth over it (a sun's shadow edge crosses it,
             or a sky or area light reaches it through pairs that a third facet can block): where a polynomial
             converges slowly.
+        sky_seed: The rotation of the sky's ray samples (:func:`sky_rays`).
+        sky: The sky's ray-cast part already cast (:func:`sky_rays` on these moments' leaves, or the
+            :meth:`SkyRays.mean` of replicas): ``sky_samples``, ``sky_points`` and ``sky_seed`` are then unused.
 
     Returns:
         ``g`` (float64 on the CPU; the first column is the facet average, as :func:`light_geometry` gives it),
@@ -155,13 +219,14 @@ def light_moments(
     check_count(sky_points, "sky_points")
     sc = scene.detach().to(torch.float64).to("cpu")
     g, flags = _moments(sc, form_factors, light, shadows, int(shadow_order), backfaces, int(sky_samples),
-                        int(sky_points), bool(direction))
+                        int(sky_points), bool(direction), int(sky_seed), sky)
     return (g, flags) if rough else g
 
 
 def _moments(sc: Scene, form_factors: MomentFormFactors, light: str | Tensor | Sequence[float],
              shadows: Literal["auto"] | bool, shadow_order: int, backfaces: Literal["auto"] | bool,
-             sky_samples: int, sky_points: int, direction: bool) -> tuple[Tensor, Tensor]:
+             sky_samples: int, sky_points: int, direction: bool, sky_seed: int = 0,
+             sky: SkyRays | None = None) -> tuple[Tensor, Tensor]:
     """:func:`light_moments` and its roughness flags."""
     F, nb = sc.num_facets, form_factors.size
     smooth = torch.zeros(F, dtype=torch.bool)
@@ -173,7 +238,10 @@ def _moments(sc: Scene, form_factors: MomentFormFactors, light: str | Tensor | S
             g[:, 0] = 1.0
             return g, smooth
         if light == "sky":
-            return _sky(sc, form_factors, backfaces, sky_samples, sky_points), occluded
+            if sky is None:
+                sky = sky_rays(sc, form_factors, backfaces=backfaces, samples=sky_samples, points=sky_points,
+                               seed=sky_seed)
+            return _sky(form_factors, sky), occluded
         if sc.material_names is None or light not in sc.material_names:
             names = list(sc.material_names) if sc.material_names else []
             raise ValueError(f"light must be 'uniform', 'sky', a direction [3], a facet mask [F], a tensor [F] or a "

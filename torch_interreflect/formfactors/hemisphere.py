@@ -22,12 +22,18 @@ from .sampling import KRONECKER_STEP, R2_STEP, pair_seeds
 
 __all__ = ["hemisphere_fractions", "hemisphere_point_fractions"]
 
+#: Facet-index offset per seed of :func:`hemisphere_point_fractions` (a prime far above any facet count), so that
+#: another seed hashes every facet to another rotation.
+_SEED_STRIDE = 1_000_003
+
 
 def _hemisphere_hits(scene: Scene, idx: Tensor, samples: int, points: int, escape: bool, back: bool,
-                     caster: Any) -> Iterator[tuple[int, int, np.ndarray, np.ndarray, dict[str, np.ndarray]]]:
+                     caster: Any, seed: int = 0) -> Iterator[tuple[int, int, np.ndarray, np.ndarray,
+                                                                    dict[str, np.ndarray]]]:
     """Rays of :func:`hemisphere_fractions` in chunks of facets: ``(start, count, origin, area, hits)`` with
     ``origin [k·P·D, 3]`` (relative to the caster's origin), ``area [k, P]`` the points' area weights and ``hits``
-    the ``"escape"`` / ``"back"`` booleans ``[k·P·D]`` asked for."""
+    the ``"escape"`` / ``"back"`` booleans ``[k·P·D]`` asked for. ``seed``: another rotation of every facet's
+    samples (0: the facet's own, :func:`~.sampling.pair_seeds` of the facet with itself)."""
     check_count(samples, "samples")
     check_count(points, "points")
     sc = scene.to(torch.float64).to("cpu")
@@ -40,16 +46,16 @@ def _hemisphere_hits(scene: Scene, idx: Tensor, samples: int, points: int, escap
     for s in range(0, K, per):
         f = idx[s : s + per]
         k = f.numel()
-        seed = pair_seeds(f, f)
+        rotation = pair_seeds(f, f + int(seed) * _SEED_STRIDE)
         origin = np.empty((k * P * D, 3), dtype=np.float32)
         direction = np.empty((k * P * D, 3), dtype=np.float32)
         area = np.empty((k, P), dtype=np.float64)
         args = [t.contiguous().numpy() for t in (corners[f], normals[f], t1[f], t2[f])]
         if kern is None:
-            _hemisphere_rays_numpy(*args, points, samples, seed.numpy(), caster.eps, origin, direction, area)
+            _hemisphere_rays_numpy(*args, points, samples, rotation.numpy(), caster.eps, origin, direction, area)
         else:
-            launch(kern.hemisphere_rays, *args, points, samples, seed.numpy(), float(caster.eps), origin, direction,
-                   area)
+            launch(kern.hemisphere_rays, *args, points, samples, rotation.numpy(), float(caster.eps), origin,
+                   direction, area)
         hits: dict[str, np.ndarray] = {}
         if escape:
             hits["escape"] = ~caster.occluded(origin, direction, np.full(len(origin), 4.0 * caster.size,
@@ -102,9 +108,11 @@ def hemisphere_fractions(scene: Scene, idx: Tensor, *, samples: int, points: int
 
 
 def hemisphere_point_fractions(scene: Scene, idx: Tensor, *, samples: int, points: int, escape: bool = True,
-                               back: bool = True, caster: Any = None) -> dict[str, Tensor]:
+                               back: bool = True, caster: Any = None, seed: int = 0) -> dict[str, Tensor]:
     """The fractions of :func:`hemisphere_fractions` at each of its points, with the points and their weights
-    (the same rays): for moments of the sky's open part over a facet.
+    (the same rays): for moments of the sky's open part over a facet. ``seed``: another rotation of every facet's
+    points and directions (``0``: the rotation of :func:`hemisphere_fractions`); estimates with different seeds are
+    independent replicas (a randomised quasi-Monte Carlo rule), whose spread measures their error.
 
     Returns:
         ``{"points": [K, P, 3] (m), "weights": [K, P] (area weights summing to 1 per facet), "escape": [K, P],
@@ -118,7 +126,7 @@ def hemisphere_point_fractions(scene: Scene, idx: Tensor, *, samples: int, point
         if want:
             out[flag] = torch.empty(K, P, dtype=torch.float64)
     nrm = sc.normals.detach()
-    for s, k, origin, area, hits in _hemisphere_hits(sc, idx, samples, points, escape, back, caster):
+    for s, k, origin, area, hits in _hemisphere_hits(sc, idx, samples, points, escape, back, caster, seed):
         first = torch.from_numpy(origin.reshape(k, P, D, 3)[:, :, 0].astype(np.float64))
         out["points"][s : s + k] = first + torch.as_tensor(caster.origin) - caster.eps * nrm[idx[s : s + k], None, :]
         out["weights"][s : s + k] = torch.from_numpy(area)

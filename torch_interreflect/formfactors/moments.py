@@ -49,12 +49,13 @@ from ..geometry.raycast import RayCaster
 from ..geometry.scene import Scene
 from .basis import FacetBasis, basis_size, facet_basis
 from .compiled import launch, loops
+from .moment_reuse import reuse_map, reused_sums
 from .operator import FormFactors
 from .pairs import classify_pairs, facing_pairs, order_pairs
 from .rules import order_for, quadrature_rule
 from .visibility import blocker_candidates
 
-__all__ = ["RHO_FAR", "MomentFormFactors", "moment_form_factors", "resample_visibility"]
+__all__ = ["RHO_FAR", "MomentFormFactors", "mean_moments", "moment_form_factors", "resample_visibility"]
 
 #: Pairs whose centroid distance is at least this many (larger) facet diameters, and that neither touch nor
 #: straddle each other's planes, get the product Gauss rule on both facets.
@@ -363,13 +364,13 @@ def moment_form_factors(
     sc = scene.to(torch.float64).to("cpu").detach()
     settings = {"degree": int(degree), "quadrature_tol": float(quadrature_tol), "occlusion": occlusion,
                 "visibility_samples": int(visibility_samples)}
-    old_of = None if reuse is None else _reuse_map(sc, reuse, settings)
+    old_of = None if reuse is None else reuse_map(sc, reuse, settings)
     setup = _pairs(sc, degree, quadrature_tol, plane_eps(scene), occlusion)
     basis = facet_basis(sc, degree)
     acc = np.zeros((setup["dom"].numel(), nb, nb))
     todo = np.arange(acc.shape[0], dtype=np.int64)
     if reuse is not None and old_of is not None:
-        todo = _reused(setup, reuse[0].info["_sums"][1:], old_of, acc)
+        todo = reused_sums(setup, reuse[0].info["_sums"][1:], old_of, acc)
     total = _pair_sums(kern, setup, basis, todo, int(visibility_samples), int(seed), acc)
     G = _assemble(kern, sc, setup, basis, acc)
     dom, tgt, need = setup["dom"], setup["tgt"], setup["need"]
@@ -397,55 +398,6 @@ def moment_form_factors(
         "_sums": (sc, setup, acc),  # for resample_visibility and reuse: the pairs and their sums
     }
     return MomentFormFactors(matrix, scene.areas.detach().to(scene.dtype), basis, info)
-
-
-def _reuse_map(sc: Scene, reuse: tuple[MomentFormFactors, Tensor], settings: dict[str, Any]) -> np.ndarray:
-    """Each facet's index among the previous moments' facets (``-1``: new), once ``reuse`` is checked."""
-    previous, kept = reuse
-    if not isinstance(previous, MomentFormFactors) or "_sums" not in previous.info:
-        raise ValueError("reuse needs moments straight from moment_form_factors (they keep their pairs' sums); got "
-                         f"{type(previous).__name__} without them")
-    if previous.info.get("settings") != settings:
-        raise ValueError(f"reuse needs moments made with the same settings {settings}; got "
-                         f"{previous.info.get('settings')}")
-    kept = torch.as_tensor(kept).reshape(-1).to(torch.int64).cpu()
-    old_sc = previous.info["_sums"][0]
-    if kept.numel() > sc.num_facets or (kept.numel() and (int(kept.min()) < 0 or int(kept.max()) >= old_sc.num_facets)):
-        raise ValueError(f"reuse's kept must index the previous moments' {old_sc.num_facets} facets, at most one per "
-                         f"facet of this scene ({sc.num_facets}); got {kept.numel()} indices in "
-                         f"[{int(kept.min()) if kept.numel() else 0}, {int(kept.max()) if kept.numel() else 0}]")
-    if not torch.equal(sc.corners[: kept.numel()], old_sc.corners[kept]):
-        raise ValueError("reuse's kept facets must be this scene's first facets, unchanged; their corners differ")
-    old_of = np.full(sc.num_facets, -1, dtype=np.int64)
-    old_of[: kept.numel()] = kept.numpy()
-    return old_of
-
-
-def _reused(setup: dict[str, Any], old: tuple[dict[str, Any], np.ndarray], old_of: np.ndarray,
-            acc: np.ndarray) -> np.ndarray:
-    """Copy into ``acc`` the sums of the pairs whose two facets are among the previous pairs ``old = (setup, acc)``
-    (``old_of``: each facet's previous index, ``-1`` if new) and need rays there as here; the pairs left to do."""
-    old_setup, old_acc = old
-    dom, tgt = setup["dom"].numpy(), setup["tgt"].numpy()
-    od, ot = old_of[dom], old_of[tgt]
-    cand = np.nonzero((od >= 0) & (ot >= 0))[0]
-    odom, otgt = old_setup["dom"].numpy(), old_setup["tgt"].numpy()
-    todo = np.ones(dom.size, dtype=bool)
-    if cand.size and odom.size:
-        n = int(max(odom.max(), otgt.max())) + 1  # old facet indices: a key per unordered pair
-        okey = np.minimum(odom, otgt) * n + np.maximum(odom, otgt)
-        order = np.argsort(okey)
-        sorted_key = okey[order]
-        key = np.minimum(od[cand], ot[cand]) * n + np.maximum(od[cand], ot[cand])
-        pos = np.minimum(np.searchsorted(sorted_key, key), order.size - 1)
-        found = sorted_key[pos] == key
-        p, q = cand[found], order[pos[found]]
-        same = setup["need"].numpy()[p] == old_setup["need"].numpy()[q]
-        p, q = p[same], q[same]
-        turned = odom[q] != od[p]  # domain and target swapped: the monomial sums transposed
-        acc[p] = np.where(turned[:, None, None], old_acc[q].transpose(0, 2, 1), old_acc[q])
-        todo[p] = False
-    return np.nonzero(todo)[0].astype(np.int64)
 
 
 def resample_visibility(moments: MomentFormFactors, *, seed: int, visibility_samples: int | None = None
@@ -476,6 +428,25 @@ def resample_visibility(moments: MomentFormFactors, *, seed: int, visibility_sam
     info.pop("_moment_plan", None)
     matrix = torch.from_numpy(G).to(dtype=moments.dtype, device=moments.device)
     return MomentFormFactors(matrix, moments.areas, moments.basis, info)
+
+
+def mean_moments(a: MomentFormFactors, b: MomentFormFactors) -> MomentFormFactors:
+    """The average of two replicas of the same moments (:func:`resample_visibility` of one another with other seeds):
+    every pair's sums averaged, so the occluded pairs' unbiased estimates hold the rays of both (the other pairs are
+    the same in both). The light of the mean is the mean of the lights (the moments enter it linearly).
+
+    Raises:
+        ValueError: ``a`` and ``b`` are not replicas (other pairs, or other visibility sample counts).
+    """
+    sa, sb = a.info.get("_sums"), b.info.get("_sums")
+    if sa is None or sb is None or sa[1] is not sb[1] or a.info.get("settings") != b.info.get("settings"):
+        raise ValueError("mean_moments needs two replicas of the same moments (resample_visibility of one another, "
+                         "with the same visibility_samples); got moments of other pairs or settings")
+    sc, setup, acc = sa[0], sa[1], 0.5 * (sa[2] + sb[2])
+    G = _assemble(_kernel(), sc, setup, a.basis, acc)
+    info = dict(a.info, rays=int(a.info["rays"]) + int(b.info["rays"]), _sums=(sc, setup, acc))
+    info.pop("_moment_plan", None)
+    return MomentFormFactors(torch.from_numpy(G).to(dtype=a.dtype, device=a.device), a.areas, a.basis, info)
 
 
 def _pair_sums(kern: Any, setup: dict[str, Any], basis: FacetBasis, todo: np.ndarray, ns: int, seed: int,

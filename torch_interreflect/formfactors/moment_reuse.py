@@ -1,0 +1,90 @@
+"""Moments reused across a refinement: which facets of a refined scene are unchanged facets of an earlier one, and
+the sums of the pairs of two such facets copied from the earlier moments (:func:`~.moments.moment_form_factors`'s
+``reuse``), so that a refinement step integrates only the pairs that changed."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from ..geometry.scene import Scene
+
+__all__ = ["reuse_map", "reused_sums"]
+
+
+def reuse_map(sc: Scene, reuse: tuple[Any, Tensor], settings: dict[str, Any]) -> np.ndarray:
+    """Each facet's index among the previous moments' facets (``-1``: new), once ``reuse`` is checked.
+
+    Args:
+        sc: The refined scene (float64, CPU).
+        reuse: ``(previous, kept)``: moments straight from :func:`~.moments.moment_form_factors` (a
+            :class:`~.moments.MomentFormFactors`, not imported here: that module imports this one) and the indices
+            ``kept [m]`` of their facets that are ``sc``'s first ``m`` facets, unchanged.
+        settings: The settings of the moments to make (``previous`` must have been made with the same).
+
+    Returns:
+        ``[F]`` int64 (numpy).
+
+    Raises:
+        ValueError: ``previous`` holds no sums or was made with other settings, or ``kept`` does not index it or
+            names facets that are not ``sc``'s first facets.
+    """
+    previous, kept = reuse
+    if "_sums" not in getattr(previous, "info", {}):
+        raise ValueError("reuse needs moments straight from moment_form_factors (they keep their pairs' sums); got "
+                         f"{type(previous).__name__} without them")
+    if previous.info.get("settings") != settings:
+        raise ValueError(f"reuse needs moments made with the same settings {settings}; got "
+                         f"{previous.info.get('settings')}")
+    kept = torch.as_tensor(kept).reshape(-1).to(torch.int64).cpu()
+    old_sc = previous.info["_sums"][0]
+    if kept.numel() > sc.num_facets or (kept.numel() and (int(kept.min()) < 0 or int(kept.max()) >= old_sc.num_facets)):
+        raise ValueError(f"reuse's kept must index the previous moments' {old_sc.num_facets} facets, at most one per "
+                         f"facet of this scene ({sc.num_facets}); got {kept.numel()} indices in "
+                         f"[{int(kept.min()) if kept.numel() else 0}, {int(kept.max()) if kept.numel() else 0}]")
+    if not torch.equal(sc.corners[: kept.numel()], old_sc.corners[kept]):
+        raise ValueError("reuse's kept facets must be this scene's first facets, unchanged; their corners differ")
+    old_of = np.full(sc.num_facets, -1, dtype=np.int64)
+    old_of[: kept.numel()] = kept.numpy()
+    return old_of
+
+
+def reused_sums(setup: dict[str, Any], old: tuple[dict[str, Any], np.ndarray], old_of: np.ndarray,
+                acc: np.ndarray) -> np.ndarray:
+    """Copy into ``acc [P, nb, nb]`` the monomial sums of the pairs whose two facets were a pair of the previous
+    moments ``old = (setup, acc)`` and need rays there as here (transposed where domain and target swapped); the
+    pairs left to integrate.
+
+    Args:
+        setup: The new pairs (``dom``, ``tgt``, ``need``; :func:`~.moments.moment_form_factors`' set-up).
+        old: The previous set-up and sums.
+        old_of: Each new facet's previous index, ``-1`` if new (:func:`reuse_map`).
+        acc: The new pairs' sums, filled in place.
+
+    Returns:
+        Indices of the pairs still to integrate ``[P']`` (int64, numpy).
+    """
+    old_setup, old_acc = old
+    dom, tgt = setup["dom"].numpy(), setup["tgt"].numpy()
+    od, ot = old_of[dom], old_of[tgt]
+    cand = np.nonzero((od >= 0) & (ot >= 0))[0]
+    odom, otgt = old_setup["dom"].numpy(), old_setup["tgt"].numpy()
+    todo = np.ones(dom.size, dtype=bool)
+    if cand.size and odom.size:
+        n = int(max(odom.max(), otgt.max())) + 1  # old facet indices: a key per unordered pair
+        okey = np.minimum(odom, otgt) * n + np.maximum(odom, otgt)
+        order = np.argsort(okey)
+        sorted_key = okey[order]
+        key = np.minimum(od[cand], ot[cand]) * n + np.maximum(od[cand], ot[cand])
+        pos = np.minimum(np.searchsorted(sorted_key, key), order.size - 1)
+        found = sorted_key[pos] == key
+        p, q = cand[found], order[pos[found]]
+        same = setup["need"].numpy()[p] == old_setup["need"].numpy()[q]
+        p, q = p[same], q[same]
+        turned = odom[q] != od[p]  # domain and target swapped: the monomial sums transposed
+        acc[p] = np.where(turned[:, None, None], old_acc[q].transpose(0, 2, 1), old_acc[q])
+        todo[p] = False
+    return np.nonzero(todo)[0].astype(np.int64)
