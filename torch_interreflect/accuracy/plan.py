@@ -361,7 +361,9 @@ def _plan_quadratic(pb: Problem, light: Any, max_facets: int, max_iterations: in
         # does not bound the error there
         st = refine_moments(pb, halving=True, **kw)
     n = st.leaves.scene.num_facets
-    method = "dense" if st.K.size * n <= DENSE_MAX_UNKNOWNS else "cg"
+    # each apply picks dense or CG by the solver's cost model for its own reflectance columns (many variants of a
+    # plan favour CG); CG always above DENSE_MAX_UNKNOWNS
+    method = "auto" if st.K.size * n <= DENSE_MAX_UNKNOWNS else "cg"
     tol = solver_tolerance(pb.accuracy)
     report = moment_report(pb, st, method, tol, t_start)
     if not report.reached:

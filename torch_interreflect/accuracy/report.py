@@ -30,7 +30,8 @@ class AccuracyReport:
             name).
         sparsified: Whether the matrix was sparsified; ``dropped`` the fraction of entries dropped and
             ``dropped_row_mass`` the largest dropped row sum.
-        method: ``"series"`` (the n-bounce model with ``bounces``) or the iterative method used (``"cg"``...).
+        method: ``"series"`` (the n-bounce model with ``bounces``), the method used (``"cg"``, ``"dense"``...), or
+            ``"auto"`` on the polynomial basis (dense or CG by the solver's cost model at each solve).
         bounces: Terms of the series (``None`` for an iterative solve), ``solver_tol`` its tolerance.
         wavelengths: The wavelengths solved (a subset of the grid when the output is camera RGB). Shape ``[L']``.
         wavelength_error: RGB error of the subset against the full grid, measured on the user's facets.

@@ -421,7 +421,7 @@ def resample_visibility(moments: MomentFormFactors, *, seed: int, visibility_sam
     todo = torch.nonzero(setup["need"]).reshape(-1).numpy().astype(np.int64)
     acc = acc.copy()
     rays = _pair_sums(kern, setup, moments.basis, todo, ns, int(seed), acc)
-    G = _assemble(kern, sc, setup, moments.basis, acc)
+    G = _assemble(kern, sc, setup, moments.basis, acc, base=moments.matrix)
     settings = dict(moments.info.get("settings", {}), visibility_samples=ns)
     info = dict(moments.info, rays=rays, visibility_samples=ns, seconds=time.perf_counter() - t0,
                 _sums=(sc, setup, acc), settings=settings, reused_pairs=0)
@@ -443,7 +443,7 @@ def mean_moments(a: MomentFormFactors, b: MomentFormFactors) -> MomentFormFactor
         raise ValueError("mean_moments needs two replicas of the same moments (resample_visibility of one another, "
                          "with the same visibility_samples); got moments of other pairs or settings")
     sc, setup, acc = sa[0], sa[1], 0.5 * (sa[2] + sb[2])
-    G = _assemble(_kernel(), sc, setup, a.basis, acc)
+    G = _assemble(_kernel(), sc, setup, a.basis, acc, base=a.matrix)
     info = dict(a.info, rays=int(a.info["rays"]) + int(b.info["rays"]), _sums=(sc, setup, acc))
     info.pop("_moment_plan", None)
     return MomentFormFactors(torch.from_numpy(G).to(dtype=a.dtype, device=a.device), a.areas, a.basis, info)
@@ -466,11 +466,19 @@ def _pair_sums(kern: Any, setup: dict[str, Any], basis: FacetBasis, todo: np.nda
     return int(blocked.size)
 
 
-def _assemble(kern: Any, sc: Scene, setup: dict[str, Any], basis: FacetBasis, acc: np.ndarray) -> np.ndarray:
-    """The dense matrix ``[F·nb, F·nb]`` from the pairs' sums."""
+def _assemble(kern: Any, sc: Scene, setup: dict[str, Any], basis: FacetBasis, acc: np.ndarray,
+              base: Tensor | None = None) -> np.ndarray:
+    """The dense matrix ``[F·nb, F·nb]`` from the pairs' sums; with ``base`` (a matrix of the same pairs whose
+    occluded pairs' sums alone differ) a copy of it with only the occluded pairs' blocks written again."""
     F, nb = sc.num_facets, basis.size
-    G = np.zeros((F * nb, F * nb))
+    if base is None:
+        G = np.zeros((F * nb, F * nb))
+        sel = slice(None)
+    else:
+        G = base.detach().to(torch.float64).cpu().numpy().copy()
+        sel = setup["need"].numpy()
     if acc.shape[0]:
-        launch(kern.scatter_blocks, setup["pairs"][0], setup["pairs"][1], acc, basis.transform.numpy(),
-               sc.areas.numpy(), G)
+        launch(kern.scatter_blocks, np.ascontiguousarray(setup["pairs"][0][sel]),
+               np.ascontiguousarray(setup["pairs"][1][sel]), np.ascontiguousarray(acc[sel]),
+               basis.transform.numpy(), sc.areas.numpy(), G)
     return G

@@ -24,12 +24,13 @@ from ..formfactors.moments import MomentFormFactors
 from .columns import from_columns, to_columns
 from .functions import SolveConfig, apply_solve
 from .info import warn_if_not_converged
-from .method import DEFAULT_MAX_ITER
+from .method import DEFAULT_MAX_ITER, choose_method
 from .plan import Component, SolvePlan, Stats
 
 __all__ = ["DENSE_MAX_UNKNOWNS", "facet_averages", "solve_moments"]
 
-#: ``method="auto"`` factors densely up to this many unknowns (facets × basis functions), CG above.
+#: ``method="auto"`` uses CG above this many unknowns (facets × basis functions); below, the solver's cost model
+#: (:func:`~torch_interreflect.solver.method.choose_method`) picks dense or CG.
 DENSE_MAX_UNKNOWNS = 6000
 
 
@@ -74,7 +75,8 @@ def solve_moments(
         E0: The direct light's moments (W·m⁻²·nm⁻¹), e.g. ``light_moments(...)[:, :, None] * spectrum``. Shape
             ``[..., F, nb, L]``.
         tol: Relative error of the iterative method (``"cg"``); the dense one is direct.
-        method: ``"auto"`` (dense up to :data:`DENSE_MAX_UNKNOWNS` unknowns), ``"dense"`` or ``"cg"``.
+        method: ``"auto"`` (the solver's cost model up to :data:`DENSE_MAX_UNKNOWNS` unknowns, CG above), ``"dense"`` or
+            ``"cg"``.
         max_iter: Most CG iterations (default: the solver's).
 
     Returns:
@@ -135,8 +137,8 @@ def solve_moments(
         raise ShapeError(f"reflectance {list(r.shape)} and E0 {list(e0.shape)} do not broadcast") from exc
     mat = matrix.to(dtype)
     plan = _plan(form_factors, mat)
-    if method == "auto":
-        method = "dense" if F * nb <= DENSE_MAX_UNKNOWNS else "cg"
+    if method == "auto":  # the solver's cost model (many distinct reflectance columns favour CG), CG when large
+        method = choose_method(plan, r_cols, float(tol)) if F * nb <= DENSE_MAX_UNKNOWNS else "cg"
     need_grad = torch.is_grad_enabled() and (r.requires_grad or e0.requires_grad)
     iters = int(max_iter if max_iter is not None else DEFAULT_MAX_ITER.get(method, 1))
     cfg = SolveConfig(plan=plan, areas=form_factors.areas.detach().to(dtype).repeat_interleave(nb), method=method,
