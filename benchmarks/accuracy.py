@@ -53,6 +53,7 @@ import torch
 import torch_interreflect as ti
 from benchmarks._common import RESULTS, ROOT
 from benchmarks._common import mitsuba as mr
+from benchmarks._common.mitsuba_curve import SAMPLERS, mitsuba_curve
 from benchmarks._common.ours import DTYPE, AccuracyWarning, direct_light, render, solve, split_and_subdivide
 from benchmarks._common.report import debias, fmt_e, fmt_t, rel_errors, write_lines
 from benchmarks.speed_vs_error import rows_from_markdown, time_at_error
@@ -90,6 +91,8 @@ BEST_OF_TWO_S = 2.0
 #: Request of the untimed warm-up render of each case's scene in its child process.
 WARM_ACCURACY = 0.5
 QUICK_ACC = [1e-2, 3e-3]
+#: Samples per facet of the Mitsuba curve timed in the run (``t ∝ e⁻²`` below its smallest error).
+MITSUBA_SPP = (1024, 4096, 16384, 65536)
 
 
 # ---------------------------------------------------------------------------------------------- problem
@@ -472,14 +475,18 @@ def cheapest_reaching(curve: Sequence[dict], target: float) -> tuple[float, str]
     return c["seconds"], f"k={c['k']}"
 
 
-def md_curves(name: str, rows: dict, noise: float) -> tuple[list[tuple[float, float]], list[tuple[float, float]]]:
-    """(debiased error, total time) of the Mitsuba and ``ours k=…`` rows of speed_vs_error.md for a scene."""
+def md_curves(name: str, rows: dict, noise: float,
+              now: Sequence[dict] | None = None) -> tuple[list[tuple[float, float]], list[tuple[float, float]]]:
+    """(debiased error, total time) of the Mitsuba and ``ours k=…`` rows of speed_vs_error.md for a scene; Mitsuba's
+    from ``now`` (:func:`~benchmarks._common.mitsuba_curve.mitsuba_curve`, timed in this run) when given."""
     mit, ours = [], []
     for r in rows.get(name, []):
-        if r.method.startswith("Mitsuba 3 (independent)"):
+        if r.method.startswith("Mitsuba 3 (independent)") and not now:
             mit.append((debias(r.rmse, noise), r.total_s))
         elif r.method == "ours" and r.setting.startswith("k="):
             ours.append((debias(r.rmse, noise), r.total_s))
+    if now:
+        mit = [(p["error"], p["seconds"]) for p in now]
     return mit, ours
 
 
@@ -564,7 +571,7 @@ def plot(results: dict, md_rows: dict, path: Path, title: str) -> None:
     for ax, name in zip(flat, names, strict=False):
         res = results[name]
         noise = res["noise"]
-        mit, ours_md = md_curves(name, md_rows, noise)
+        mit, ours_md = md_curves(name, md_rows, noise, res.get("mitsuba_now"))
         if mit:
             ax.loglog([t for _, t in mit], [max(e, 1e-6) for e, _ in mit], "x-", ms=4, label="Mitsuba 3 (md)")
         if ours_md:
@@ -605,6 +612,15 @@ def plot(results: dict, md_rows: dict, path: Path, title: str) -> None:
     plt.close(fig)
 
 
+def mitsuba_source(results: dict) -> str:
+    """Where the report's Mitsuba times come from, in words."""
+    if any(r.get("mitsuba_now") for r in results.values()):
+        return (f"Mitsuba timed in this run, on all cores: the batched irradiance-meter estimator at "
+                f"{', '.join(map(str, MITSUBA_SPP))} samples per facet with both samplers ({', '.join(SAMPLERS)}; "
+                "the cheaper at each error), three seeds each, scene build + median warm render")
+    return "Mitsuba read off `speed_vs_error.md` (independent sampler, 2 threads, an earlier run)"
+
+
 def against_mitsuba(results: dict, md_rows: dict) -> list[str]:
     """Mitsuba's time to reach the requested error over ``render``'s, per request, on the bright scenes without
     the sky-lit scenes (geometric mean and range)."""
@@ -612,7 +628,7 @@ def against_mitsuba(results: dict, md_rows: dict) -> list[str]:
     for n, r in results.items():
         if n.startswith(SKY_SCENES) or not n.endswith("_r9"):
             continue
-        mit, _ = md_curves(n, md_rows, r["noise"])
+        mit, _ = md_curves(n, md_rows, r["noise"], r.get("mitsuba_now"))
         for c in r["cases"]:
             t = time_at_error(mit, c["accuracy"]) if "m" in c else math.nan
             if math.isfinite(t):
@@ -620,7 +636,7 @@ def against_mitsuba(results: dict, md_rows: dict) -> list[str]:
     if not per:
         return []
     lines = ["", "Mitsuba's time at the requested error / `render`'s time, bright scenes (r = 0.9) without the "
-             "sky-lit scenes (Mitsuba read off `speed_vs_error.md`, as above):", "",
+             f"sky-lit scenes ({mitsuba_source(results)}):", "",
              "| requested | scenes | geometric mean | range |", "|---:|---:|---:|---|"]
     for acc in sorted(per, reverse=True):
         x = per[acc]
@@ -839,9 +855,10 @@ def write(results: dict, a: argparse.Namespace, suffix: str, wall: float, starte
         "`subdivide(k)` of the scene split at contacts "
         f"{uniform_timing_note(results, started, ended)} (same threads; form-factor tol 1e-4, solver "
         "tol 1e-6; error against "
-        "the same finer solution); *ours k=1..4 (md)* and *Mitsuba* are read off the rows of "
-        "`speed_vs_error.md` (timed on 2 threads, errors against Mitsuba with its noise taken out; Mitsuba "
-        "interpolated log-log on its time-against-error curve, `t ∝ e⁻²` below its smallest error). "
+        "the same finer solution); *ours k=1..4 (md)* is read off the rows of `speed_vs_error.md` (timed on 2 "
+        "threads, errors against Mitsuba with its noise taken out); *Mitsuba*: "
+        f"{mitsuba_source(results)}; errors against the reference with its noise taken out, its time "
+        "interpolated log-log on its time-against-error curve, `t ∝ e⁻²` below its smallest error. "
         "*Mitsuba at the requested error*: the same curve read at the request instead. "
         "In brackets: that time over the adaptive time (> 1: `render` is faster).",
         "",
@@ -896,7 +913,7 @@ def write(results: dict, a: argparse.Namespace, suffix: str, wall: float, starte
                "| scene | k | pieces | vs Mitsuba, debiased (raw) | k − 1 vs k | constant-basis extrapolation vs it "
                "| time |", "|---|---:|---:|---:|---:|---:|---:|", *quad_rows]
     for name, r in results.items():
-        mit, ours_md = md_curves(name, md_rows, r["noise"])
+        mit, ours_md = md_curves(name, md_rows, r["noise"], r.get("mitsuba_now"))
         md += [
             "",
             f"## {name}",
@@ -961,6 +978,8 @@ def main(argv: Sequence[str] | None = None) -> None:
                     help="render(basis=...) (suffix _constant / _quadratic when not auto)")
     ap.add_argument("--last-level", action="store_true",
                     help="render(extrapolate=False): the last refinement level alone (suffix _last_level)")
+    ap.add_argument("--no-mitsuba", action="store_true",
+                    help="do not time Mitsuba in this run: read its times off speed_vs_error.md")
     ap.add_argument(
         "--from-json",
         action="store_true",
@@ -1007,6 +1026,16 @@ def main(argv: Sequence[str] | None = None) -> None:
         CACHE.mkdir(parents=True, exist_ok=True)
         wall = time.perf_counter() - t_start
         saved = {"results": results, "wall": wall, "started": started}
+        (CACHE / f"results{suffix}.json").write_text(json.dumps(_jsonable(saved)))
+    if not a.no_mitsuba and mr.available():
+        # after every render (Dr.Jit's threads and JIT stay in this process; the renders' children are forked)
+        torch.set_num_threads(os.cpu_count() or 1)
+        for n in results:
+            t0 = time.perf_counter()
+            results[n]["mitsuba_now"] = mitsuba_curve(mr.load_reference(n), MITSUBA_SPP)
+            log(f"{n}: Mitsuba curve ({time.perf_counter() - t0:.1f} s)")
+        torch.set_num_threads(a.threads)
+        saved = {"results": results, "wall": time.perf_counter() - t_start, "started": started}
         (CACHE / f"results{suffix}.json").write_text(json.dumps(_jsonable(saved)))
     out = write(results, a, suffix, time.perf_counter() - t_start, started, time.time())
     log(f"wrote {out}")

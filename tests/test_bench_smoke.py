@@ -158,6 +158,31 @@ def test_accuracy_benchmark_reads_mitsuba_at_the_request() -> None:
     assert lines[-1] == f"| 0.01 | 2 | {geo:.3g}× | {min(ratios):.2g}–{max(ratios):.2g}× |"
 
 
+def test_accuracy_benchmark_takes_mitsuba_timed_in_the_run() -> None:
+    """A Mitsuba curve timed in the run replaces speed_vs_error.md's, and the cheaper sampler wins at each error."""
+    from benchmarks import accuracy as ab
+
+    now = [{"sampler": "independent", "spp": 1024, "error": 0.02, "seconds": 1.0},
+           {"sampler": "multijitter", "spp": 1024, "error": 0.02, "seconds": 0.1},
+           {"sampler": "multijitter", "spp": 4096, "error": 0.01, "seconds": 0.3}]
+    results = {"vgroove30_sun_r9": {"noise": 3e-4, "cases": [{"accuracy": 5e-3, "seconds": 0.5, "m": {}}],
+                                    "mitsuba_now": now}}
+    lines = ab.against_mitsuba(results, {})
+    assert "timed in this run" in lines[1]
+    assert lines[-1] == "| 0.005 | 1 | 2.4× | 2.4–2.4× |"  # 0.3 s at 1 %, t ∝ e⁻² below: 1.2 s at 0.5 %
+
+
+@pytest.mark.skipif(not mr.available(), reason="Mitsuba 3 (bench extra) not installed")
+def test_mitsuba_curve_times_both_samplers() -> None:
+    from benchmarks._common.mitsuba_curve import SAMPLERS, mitsuba_curve
+
+    pts = mitsuba_curve(mr.load_reference("box_corner_sun_r2"), (64, 1024), seeds=(1,))
+    assert [(p["sampler"], p["spp"]) for p in pts] == [(s, n) for s in SAMPLERS for n in (64, 1024)]
+    for s in SAMPLERS:
+        a, b = (p for p in pts if p["sampler"] == s)
+        assert b["error"] < a["error"] and a["seconds"] > 0 and b["raw"] >= b["error"]
+
+
 @pytest.mark.skipif(not mr.available("llvm_ad_spectral"), reason="Mitsuba 3 (bench extra) not installed")
 def test_pathtraced_test_set_agrees_with_the_library(tmp_path: Path) -> None:
     """Mitsuba's spectral image of a test sample against the library's final gather of the same spectra.
