@@ -573,7 +573,8 @@ def plot(results: dict, md_rows: dict, path: Path, title: str) -> None:
         noise = res["noise"]
         mit, ours_md = md_curves(name, md_rows, noise, res.get("mitsuba_now"))
         if mit:
-            ax.loglog([t for _, t in mit], [max(e, 1e-6) for e, _ in mit], "x-", ms=4, label="Mitsuba 3 (md)")
+            label = "Mitsuba 3 (this run)" if res.get("mitsuba_now") else "Mitsuba 3 (md)"
+            ax.loglog([t for _, t in mit], [max(e, 1e-6) for e, _ in mit], "x-", ms=4, label=label)
         if ours_md:
             ax.loglog([t for _, t in ours_md], [max(e, 1e-6) for e, _ in ours_md], "o:", ms=4, label="ours k=1..4 (md)")
         cv = res["uniform"]

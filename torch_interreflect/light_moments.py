@@ -190,7 +190,8 @@ def light_moments(
             converges slowly.
         sky_seed: The rotation of the sky's ray samples (:func:`sky_rays`).
         sky: The sky's ray-cast part already cast (:func:`sky_rays` on these moments' leaves, or the
-            :meth:`SkyRays.mean` of replicas): ``sky_samples``, ``sky_points`` and ``sky_seed`` are then unused.
+            :meth:`SkyRays.mean` of replicas): ``sky_samples``, ``sky_points``, ``sky_seed`` and ``backfaces`` are
+            then unused (they were :func:`sky_rays`' to choose).
 
     Returns:
         ``g`` (float64 on the CPU; the first column is the facet average, as :func:`light_geometry` gives it),

@@ -3,6 +3,7 @@ unchanged facets take their sums from the previous moments, and nothing else cha
 
 import math
 
+import numpy as np
 import pytest
 import torch
 
@@ -11,6 +12,7 @@ from torch_interreflect.accuracy import moments_plan
 from torch_interreflect.accuracy.leaves import Leaves, split
 from torch_interreflect.formfactors import moment_form_factors
 from torch_interreflect.formfactors.compiled import loops
+from torch_interreflect.formfactors.moment_reuse import reused_sums
 
 pytestmark = pytest.mark.skipif(loops("moments") is None, reason="the moments need numba")
 D = torch.float64
@@ -102,6 +104,38 @@ def test_reuse_rejects_what_it_cannot_use():
         moment_form_factors(leaves.scene, 2, reuse=(K, leaves.kept.flip(0)))
     with pytest.raises(ValueError, match="must index"):
         moment_form_factors(leaves.scene, 2, reuse=(K, leaves.kept + scene.num_facets))
+
+
+def test_reuse_refuses_other_surfaces():
+    """Kept facets unchanged but a blocker moved: the kept pairs' rays were cast against the old blocker, so reuse
+    refuses (it would give F between floor and ceiling 0.0819 for a fresh 0.0573)."""
+    scene = _occluded_scene()
+    previous = moment_form_factors(scene, 2)
+    n = scene.num_facets
+    moved = scene.corners.clone()
+    moved[8:16, :, 0] += 0.6  # the blocker's pieces (both sides), the floor and ceiling kept
+    keep = torch.cat([torch.arange(8), torch.arange(16, n)])
+    order = torch.cat([keep, torch.arange(8, 16)])
+    other = ti.Scene.from_parts(moved[order], scene.is_triangle[order], None, None)
+    with pytest.raises(ValueError, match="refinement of the previous scene"):
+        moment_form_factors(other, 2, reuse=(previous, keep))
+
+
+def test_reused_sums_copies_transposes_and_skips_a_changed_need():
+    """The pair sums are copied where both facets are kept, transposed where domain and target swapped, and left to
+    integrate where the pair needs rays now but not before (or the reverse) or holds a new facet."""
+    nb = 2
+    old_acc = np.arange(3 * nb * nb, dtype=float).reshape(3, nb, nb)
+    old = ({"dom": torch.tensor([0, 1, 0]), "tgt": torch.tensor([1, 2, 2]),
+            "need": torch.tensor([False, False, True])}, old_acc)
+    new = {"dom": torch.tensor([0, 2, 0, 3]), "tgt": torch.tensor([1, 1, 2, 0]),
+           "need": torch.tensor([False, False, False, False])}
+    acc = np.full((4, nb, nb), -1.0)
+    todo = reused_sums(new, old, np.array([0, 1, 2, -1]), acc)
+    assert todo.tolist() == [2, 3]  # pair (0, 2) needed rays before; facet 3 is new
+    assert np.array_equal(acc[0], old_acc[0])
+    assert np.array_equal(acc[1], old_acc[1].T)  # (2, 1) was (1, 2)
+    assert (acc[2:] == -1).all()
 
 
 def test_the_planner_reuses_and_gives_the_same_answer(monkeypatch):

@@ -60,9 +60,9 @@ from .leaves import Leaves, relative_change, rms, select, split, to_user
 from .refine import Problem
 from .report import AccuracyReport
 
-__all__ = ["DEGREE", "HALVING_SHARE", "Q_EST", "Q_HALVING", "Q_LINEAR", "MomentRefinement", "kernel_part",
-           "leaf_light", "moment_quadrature_tol", "moment_report", "polynomial_allowed", "refine_moments",
-           "smooth_light", "solver_tolerance"]
+__all__ = ["DEGREE", "HALVING_SHARE", "Q_EST", "Q_HALVING", "Q_LINEAR", "REPLICA_MARGIN", "MomentRefinement",
+           "kernel_part", "leaf_light", "moment_quadrature_tol", "moment_report", "polynomial_allowed",
+           "refine_moments", "sky_points", "smooth_light", "solver_part", "solver_tolerance"]
 
 #: Degree of the basis the planner solves on.
 DEGREE = 2
@@ -89,14 +89,24 @@ Q_HALVING = 1.0
 #: 27 s and 114 s, both short of the request, with the 0.9 of smooth scenes; measured with ``Q_HALVING = 0.6``).
 HALVING_SHARE = 0.7
 
-#: Directions per axis of the sky's ray-cast part at first.
+#: Directions per axis of the sky's ray-cast part at first, from half as many points per axis on each leaf
+#: (:func:`sky_points`). Points and directions grow together: on the Cornell box's 50 pieces (independent replicas,
+#: RMS per piece) 8 points × 16 directions gave 1.42 %, 16 × 32 0.41 % against 0.69 % for 8 × 64 (the same rays:
+#: the points set a floor when only the directions grow). Odd counts did worse (11 × 11: 2.7 %; 12 × 12: 1.1 %).
 SKY_SAMPLES = 16
 
-#: Most directions per axis of the sky's ray-cast part (:data:`SKY_SAMPLES` at first).
-MAX_SKY_SAMPLES = 64
+#: Most directions per axis of the sky's ray-cast part (16 points per axis then: 16² × 32² ≈ 262,000 rays per leaf,
+#: the 8² × 64² of the directions-only growth this replaced).
+MAX_SKY_SAMPLES = 32
 
 #: Margin on the sample counts chosen from the measured ray-cast parts (each falls as one over its count per axis).
 RAY_MARGIN = 1.2
+
+#: A ray-cast part is the change of the output that its replica makes, divided by this. Half the change is the RMS
+#: error of the mean of the two replicas; one pair of replicas measures it noisily (the sky's part on the Cornell
+#: box, 12 pairs: 0.4–2.5 times the error, pooled 0.85–0.97), and √2 keeps the margin that the single check before
+#: the replicas had (its change was √2 times the error of the answer it checked).
+REPLICA_MARGIN = math.sqrt(2.0)
 
 #: Visibility rays per side of the target from each outer point of an occluded pair, at first and at most: while
 #: the measured ray-cast parts keep the total above the request, the rays and the sky's directions grow, each by the
@@ -187,7 +197,7 @@ def _level(pb: Problem, leaves: Leaves, share: float, seed: int = 0, sky_samples
     t = time.perf_counter()
     is_sun = sun_direction(pb.light, pb.F) is not None  # decided on the user's facets, not the leaves' count
     if sky is None and _is_sky(pb):
-        sky = sky_rays(leaves.scene, K, samples=sky_samples)
+        sky = sky_rays(leaves.scene, K, samples=sky_samples, points=sky_points(sky_samples))
     g, rough_leaf = light_moments(leaves.scene, K, leaf_light(pb.light, leaves.user, pb.F), rough=True,
                                   direction=is_sun, sky=sky)  # type: ignore[misc]
     g = g.to(device=pb.r.device, dtype=pb.r.dtype)  # light_moments works in float64 on the CPU
@@ -241,7 +251,7 @@ def refine_moments(pb: Problem, *, max_unknowns: int, max_iterations: int, show:
     share = pb.accuracy * (pb.budget["discretisation"] + pb.budget.get("sparsification", 0.0))
     if halving:
         share = pb.accuracy * HALVING_SHARE
-    share = min(share, pb.accuracy - kernel_part(pb))
+    share = min(share, pb.accuracy - kernel_part(pb) - solver_part(pb))
     max_leaves = max(pieces.num_facets, max_unknowns // 6)
     history: list[dict[str, float]] = []
     reason = ""
@@ -286,12 +296,12 @@ def refine_moments(pb: Problem, *, max_unknowns: int, max_iterations: int, show:
 
 def _ray_parts(pb: Problem, leaves: Leaves, lv: _Level, est: Tensor, share: float, halving: bool,
                history: list[dict[str, float]], t_start: float) -> tuple[_Level, Tensor, Tensor]:
-    """The ray-cast parts at the last level, measured apart by replicas: the visibility's rays, and the sky's
-    directions, drawn again at the same counts with other seeds; the result is the mean of both replicas, whose error
-    from each part is half the change that part's replica makes (RMS). While they keep the total above the request,
-    each count grows (:func:`_more_samples`) and the replicas are drawn again. Returns the level of the mean, the
-    ray-cast part per user facet ``[F]`` and the discretisation estimate ``est [F]`` (that of the last level solved
-    unless ``halving``); appends each growth to ``history``."""
+    """The ray-cast parts at the last level, measured apart by replicas: the visibility's rays, and the sky's points
+    and directions, drawn again at the same counts with other seeds; the result is the mean of both replicas. A
+    part is the change its replica makes over √2 (:data:`REPLICA_MARGIN`). While they keep the total above the
+    request, each count grows (:func:`_more_samples`) and the replicas are drawn again. Returns the level of the
+    mean, the ray-cast part per user facet ``[F]`` and the discretisation estimate ``est [F]`` (that of the last
+    level solved unless ``halving``); appends each growth to ``history``."""
     ray = torch.zeros(pb.F, dtype=torch.float64)
     vis, sky = VISIBILITY_SAMPLES, SKY_SAMPLES
     replica = 0
@@ -302,29 +312,31 @@ def _ray_parts(pb: Problem, leaves: Leaves, lv: _Level, est: Tensor, share: floa
         K_b = resample_visibility(lv.full, seed=replica, visibility_samples=vis)
         x_b = _level(pb, leaves, share, degree=lv.degree, moments=K_b, sky=lv.sky).x
         cost[0] = time.perf_counter() - t
-        parts[0] = 0.5 * relative_change(x_b, lv.x).cpu()
-        sky_mean = None
+        parts[0] = relative_change(x_b, lv.x).cpu() / REPLICA_MARGIN
+        sky_b = None
         if lv.sky is not None and (lv.sky.escape_ids.numel() or lv.sky.back_ids.numel()):
             t = time.perf_counter()
-            sky_b = sky_rays(leaves.scene, lv.full, samples=sky, seed=replica)
+            sky_b = sky_rays(leaves.scene, lv.full, samples=sky, points=sky_points(sky), seed=replica)
             x_b = _level(pb, leaves, share, degree=lv.degree, moments=lv.full, sky=sky_b).x
             cost[1] = time.perf_counter() - t
-            parts[1] = 0.5 * relative_change(x_b, lv.x).cpu()
-            sky_mean = lv.sky.mean(sky_b)
-        mean = _level(pb, leaves, share, degree=lv.degree, moments=mean_moments(lv.full, K_b), sky=sky_mean)
+            parts[1] = relative_change(x_b, lv.x).cpu() / REPLICA_MARGIN
         ray = parts[0] + parts[1]
-        left = pb.accuracy - rms(est) - kernel_part(pb)
+        left = pb.accuracy - rms(est) - kernel_part(pb) - solver_part(pb)
         # done when the parts fit; nothing to gain when every count is at its most, or when the discretisation
         # alone is above the request
-        if rms(ray) <= left or (vis >= MAX_VISIBILITY_SAMPLES and sky >= MAX_SKY_SAMPLES) or left <= 0:
-            lv = mean
-            break
-        more_vis, more_sky = _more_samples(rms(parts[0]), rms(parts[1]), cost[0], cost[1], left / RAY_MARGIN)
-        new_vis = _grown(vis, more_vis, MAX_VISIBILITY_SAMPLES)
-        new_sky = _grown(sky, more_sky, MAX_SKY_SAMPLES)
-        if (new_vis, new_sky) == (vis, sky):
-            lv = mean
-            break
+        done = rms(ray) <= left or (vis >= MAX_VISIBILITY_SAMPLES and sky >= MAX_SKY_SAMPLES) or left <= 0
+        if not done:
+            more_vis, more_sky = _more_samples(rms(parts[0]), rms(parts[1]), cost[0], cost[1], left / RAY_MARGIN)
+            new_vis = _grown(vis, more_vis, MAX_VISIBILITY_SAMPLES)
+            # the sky's part falls as one over its rays per axis (points × directions): each count per axis grows by
+            # the square root (kept even)
+            new_sky = _grown(sky, math.sqrt(more_sky), MAX_SKY_SAMPLES)
+            new_sky += new_sky % 2
+            done = (new_vis, new_sky) == (vis, sky)
+        if done:
+            sky_mean = lv.sky.mean(sky_b) if lv.sky is not None and sky_b is not None else lv.sky
+            return (_level(pb, leaves, share, degree=lv.degree, moments=mean_moments(lv.full, K_b), sky=sky_mean),
+                    ray, est)
         same_vis, same_sky = new_vis == vis, new_sky == sky
         vis, sky = new_vis, new_sky
         lv = _level(pb, leaves, share, sky_samples=sky, visibility=vis, like=None if same_vis else lv.full,
@@ -337,12 +349,17 @@ def _ray_parts(pb: Problem, leaves: Leaves, lv: _Level, est: Tensor, share: floa
     return lv, ray, est
 
 
+def sky_points(samples: int) -> int:
+    """Points per axis on each leaf for ``samples`` sky directions per axis (:data:`SKY_SAMPLES`)."""
+    return max(1, samples // 2)
+
+
 def _more_samples(vis_part: float, sky_part: float, vis_cost: float, sky_cost: float,
                   left: float) -> tuple[float, float]:
-    """Factors on the visibility rays per side and on the sky's directions per axis that bring the two measured
-    ray-cast parts (each falling as one over its factor) within ``left`` at the least cost (each cost growing as its
-    factor squared): ``f ∝ (part / cost)^(1/3)``, neither below 1; infinite where one part alone exceeds ``left``
-    (``left > 0``)."""
+    """Factors on the visibility rays per side and on the sky's rays per point and axis (its points per axis times
+    its directions per axis) that bring the two measured ray-cast parts (each falling as one over its factor) within
+    ``left`` at the least cost (each cost growing as its factor squared): ``f ∝ (part / cost)^(1/3)``, neither below
+    1; infinite where one part alone exceeds ``left`` (``left > 0``)."""
     a = (vis_part / max(vis_cost, 1e-9)) ** (1 / 3)
     b = (sky_part / max(sky_cost, 1e-9)) ** (1 / 3)
     c = ((vis_part / a if a > 0 else 0.0) + (sky_part / b if b > 0 else 0.0)) / left
@@ -375,6 +392,12 @@ def kernel_part(pb: Problem) -> float:
     the output moves by 5e-6 between tolerances 1e-5 and 1e-8."""
     r_max = float(pb.r.max()) if pb.r.numel() else 0.0
     return pb.quadrature_tol / max(1.0 - r_max, 0.05)
+
+
+def solver_part(pb: Problem) -> float:
+    """The allowance reported for the solver: CG's tolerance (:func:`solver_tolerance`), since a polynomial plan
+    solves by dense Cholesky or CG, whichever the cost model picks at each solve."""
+    return solver_tolerance(pb.accuracy)
 
 
 def polynomial_allowed(basis: str, scene: Scene, light: Any) -> bool:
@@ -421,7 +444,7 @@ def moment_report(pb: Problem, st: MomentRefinement, method: str, solver_tol: fl
     """The :class:`AccuracyReport` of a plan on the quadratic basis: the discretisation estimate, the ray-cast part
     measured at the last step, and the quadrature tolerance as the kernel's bound (the dense solve is direct; CG
     stops at ``solver_tol``)."""
-    solver = 0.0 if method == "dense" else solver_tol
+    solver = 0.0 if method == "dense" else solver_part(pb)
     parts = {"discretisation": rms(st.est), "form_factors": kernel_part(pb),
              "sparsification": 0.0, "solver": solver, "wavelengths": 0.0, "light": rms(st.ray)}
     total = sum(parts.values())

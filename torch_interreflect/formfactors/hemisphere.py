@@ -22,9 +22,26 @@ from .sampling import KRONECKER_STEP, R2_STEP, pair_seeds
 
 __all__ = ["hemisphere_fractions", "hemisphere_point_fractions"]
 
-#: Facet-index offset per seed of :func:`hemisphere_point_fractions` (a prime far above any facet count), so that
-#: another seed hashes every facet to another rotation.
-_SEED_STRIDE = 1_000_003
+
+
+def _rotation(f: Tensor, seed: int) -> Tensor:
+    """The rotation ``[k, 2]`` in ``[0, 1)`` of facets ``f``'s samples: seed 0 is the facets' own
+    (:func:`~.sampling.pair_seeds` of the facet with itself); another seed draws every facet's rotation afresh from a
+    splitmix64 hash of (facet, seed), so that estimates with different seeds are independent replicas (a linear
+    hash would shift every facet by the same amount)."""
+    if seed == 0:
+        return pair_seeds(f, f)
+    with np.errstate(over="ignore"):
+        z = f.cpu().numpy().astype(np.uint64) * np.uint64(0x9E3779B97F4A7C15) + np.uint64(seed) * np.uint64(
+            0xD1B54A32D192ED03)
+        out = []
+        for salt in (np.uint64(0), np.uint64(0x632BE59BD9B4E019)):
+            x = z ^ salt
+            x = (x ^ (x >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
+            x = (x ^ (x >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
+            x = x ^ (x >> np.uint64(31))
+            out.append((x >> np.uint64(11)).astype(np.float64) / 9007199254740992.0)
+    return torch.from_numpy(np.stack(out, -1))
 
 
 def _hemisphere_hits(scene: Scene, idx: Tensor, samples: int, points: int, escape: bool, back: bool,
@@ -32,8 +49,8 @@ def _hemisphere_hits(scene: Scene, idx: Tensor, samples: int, points: int, escap
                                                                     dict[str, np.ndarray]]]:
     """Rays of :func:`hemisphere_fractions` in chunks of facets: ``(start, count, origin, area, hits)`` with
     ``origin [k·P·D, 3]`` (relative to the caster's origin), ``area [k, P]`` the points' area weights and ``hits``
-    the ``"escape"`` / ``"back"`` booleans ``[k·P·D]`` asked for. ``seed``: another rotation of every facet's
-    samples (0: the facet's own, :func:`~.sampling.pair_seeds` of the facet with itself)."""
+    the ``"escape"`` / ``"back"`` booleans ``[k·P·D]`` asked for. ``seed``: the samples' rotation
+    (:func:`_rotation`)."""
     check_count(samples, "samples")
     check_count(points, "points")
     sc = scene.to(torch.float64).to("cpu")
@@ -46,7 +63,7 @@ def _hemisphere_hits(scene: Scene, idx: Tensor, samples: int, points: int, escap
     for s in range(0, K, per):
         f = idx[s : s + per]
         k = f.numel()
-        rotation = pair_seeds(f, f + int(seed) * _SEED_STRIDE)
+        rotation = _rotation(f, int(seed))
         origin = np.empty((k * P * D, 3), dtype=np.float32)
         direction = np.empty((k * P * D, 3), dtype=np.float32)
         area = np.empty((k, P), dtype=np.float64)

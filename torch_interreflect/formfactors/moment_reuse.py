@@ -29,8 +29,9 @@ def reuse_map(sc: Scene, reuse: tuple[Any, Tensor], settings: dict[str, Any]) ->
         ``[F]`` int64 (numpy).
 
     Raises:
-        ValueError: ``previous`` holds no sums or was made with other settings, or ``kept`` does not index it or
-            names facets that are not ``sc``'s first facets.
+        ValueError: ``previous`` holds no sums or was made with other settings, ``kept`` does not index it or
+            names facets that are not ``sc``'s first facets, or ``sc``'s other facets do not cover the previous
+            ones' other facets (their total area or bounding box differs: not a refinement).
     """
     previous, kept = reuse
     if "_sums" not in getattr(previous, "info", {}):
@@ -45,11 +46,31 @@ def reuse_map(sc: Scene, reuse: tuple[Any, Tensor], settings: dict[str, Any]) ->
         raise ValueError(f"reuse's kept must index the previous moments' {old_sc.num_facets} facets, at most one per "
                          f"facet of this scene ({sc.num_facets}); got {kept.numel()} indices in "
                          f"[{int(kept.min()) if kept.numel() else 0}, {int(kept.max()) if kept.numel() else 0}]")
-    if not torch.equal(sc.corners[: kept.numel()], old_sc.corners[kept]):
+    m = kept.numel()
+    if not torch.equal(sc.corners[:m], old_sc.corners[kept]):
         raise ValueError("reuse's kept facets must be this scene's first facets, unchanged; their corners differ")
+    # the other facets must cover the same surfaces as the previous ones (a refinement of them): the kept pairs'
+    # rays were cast against those; checked by their total area and bounding box
+    rest = torch.ones(old_sc.num_facets, dtype=torch.bool)
+    rest[kept] = False
+    a_new, a_old = float(sc.areas[m:].sum()), float(old_sc.areas[rest].sum())
+    box_new, box_old = _box(sc.corners[m:]), _box(old_sc.corners[rest])
+    size = float((sc.corners.reshape(-1, 3).amax(0) - sc.corners.reshape(-1, 3).amin(0)).norm())
+    if abs(a_new - a_old) > 1e-9 * max(a_old, 1e-300) or float((box_new - box_old).abs().max()) > 1e-9 * size:
+        raise ValueError("reuse needs a refinement of the previous scene: its facets other than the kept ones must "
+                         f"cover the same surfaces; got an area of {a_new:.9g} m² against {a_old:.9g} m², bounding "
+                         f"boxes {box_new.tolist()} against {box_old.tolist()}")
     old_of = np.full(sc.num_facets, -1, dtype=np.int64)
     old_of[: kept.numel()] = kept.numpy()
     return old_of
+
+
+def _box(corners: Tensor) -> Tensor:
+    """Bounding box ``[2, 3]`` of facets' corners ``[n, 4, 3]`` (zeros when there are none)."""
+    if corners.shape[0] == 0:
+        return torch.zeros(2, 3, dtype=corners.dtype)
+    pts = corners.reshape(-1, 3)
+    return torch.stack([pts.amin(0), pts.amax(0)])
 
 
 def reused_sums(setup: dict[str, Any], old: tuple[dict[str, Any], np.ndarray], old_of: np.ndarray,

@@ -329,7 +329,9 @@ def moment_form_factors(
             this scene's first ``m`` facets, unchanged (a refinement that split the others, as
             :func:`torch_interreflect.accuracy.leaves.split` orders them). A pair of two such facets takes its sums
             from ``previous`` (with its rays) when it needs rays there as here; only the other pairs are integrated.
-            Without occlusion the result is the same, bit for bit, as without ``reuse``.
+            The other facets must refine ``previous``'s other facets (checked by their area and bounding box).
+            Without occlusion, and with the kept facets in their previous order (as ``split`` keeps them), the
+            result is the same, bit for bit, as without ``reuse`` (in another order, to rounding).
 
     Returns:
         :class:`MomentFormFactors` with ``info``: ``pairs``, ``near``/``far``/``clipped`` counts, ``occluded_pairs``,
@@ -475,7 +477,7 @@ def _assemble(kern: Any, sc: Scene, setup: dict[str, Any], basis: FacetBasis, ac
         G = np.zeros((F * nb, F * nb))
         sel = slice(None)
     else:
-        G = base.detach().to(torch.float64).cpu().numpy().copy()
+        G = base.detach().to("cpu", torch.float64, copy=True).numpy()
         sel = setup["need"].numpy()
     if acc.shape[0]:
         launch(kern.scatter_blocks, np.ascontiguousarray(setup["pairs"][0][sel]),
