@@ -331,3 +331,17 @@ def test_accuracy_benchmark_quotes_renders_own_warning(monkeypatch: pytest.Monke
     assert len(c["warnings"]) == 1 + render_warns
     assert c["warning"].startswith("render" if render_warns else "solve")
     assert ab.render_warned(c) is render_warns
+
+
+def test_cc_refine_starts_the_requested_angle_off_the_answer() -> None:
+    import torch
+
+    from benchmarks.cc_refine import _start
+
+    rgb = torch.tensor([0.9, 0.7, 0.4])
+    for index in range(5):
+        s = _start(rgb, index, 6.0)
+        cos = float(torch.nn.functional.normalize(rgb.double(), dim=0) @ s / s.norm())
+        assert math.degrees(math.acos(min(1.0, cos))) == pytest.approx(6.0, abs=1e-9)
+        assert torch.equal(s, _start(rgb, index, 6.0))  # seeded by the image's index
+    assert not torch.equal(_start(rgb, 0, 6.0), _start(rgb, 1, 6.0))
