@@ -25,6 +25,12 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from torch_interreflect.errors import AccuracyWarning
+from torch_interreflect.training import GeneratedDataset, refine_illuminant
+from torch_interreflect.training.metrics import angular_error
+
+from .colour_constancy import scene_kinds
+
 RESULTS = Path(__file__).resolve().parent / "results"
 
 
@@ -37,31 +43,28 @@ def _start(rgb: torch.Tensor, index: int, degrees: float) -> torch.Tensor:
     return (math.cos(a) * v + math.sin(a) * u / u.norm()).clamp_min(1e-3)
 
 
-def _work(root: str, indices: list[int], settings: dict, degrees: float) -> list[tuple[float, str]]:
+def _work(root: str, indices: list[int], settings: dict, degrees: float) -> list[float]:
     torch.set_num_threads(1)
-    warnings.simplefilter("ignore")
-    from torch_interreflect.training import GeneratedDataset, refine_illuminant
-    from torch_interreflect.training.metrics import angular_error
-
+    warnings.simplefilter("ignore", AccuracyWarning)  # refine_illuminant's solves warn of closure errors, per image
     test = GeneratedDataset(root, None, indices, geometry=True)
     conf = {"camera": test.config.camera, "wavelengths": list(test.config.wavelengths)}
     out = []
     for it in test:
         r = refine_illuminant(conf, it["image"], it["geometry"], _start(it["illuminant"], int(it["index"]), degrees),
                               **settings)
-        kind = json.loads((Path(root) / f"{int(it['index']):06d}.json").read_text())["scene"]["kind"]
-        out.append((float(angular_error(r.rgb.float(), it["illuminant"])), kind))
+        out.append(float(angular_error(r.rgb.float(), it["illuminant"])))
     return out
 
 
 def run(root: str, count: int, settings: dict, degrees: float, workers: int) -> dict:
     idx = json.loads((Path(root) / "dataset.json").read_text())["indices"][:count]
     t = time.perf_counter()
+    e = np.empty(len(idx))
     with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn")) as ex:
         futures = [ex.submit(_work, root, idx[k::workers], settings, degrees) for k in range(workers)]
-        res = [r for f in futures for r in f.result()]
-    e = np.array([r[0] for r in res])
-    kinds = np.array([r[1] for r in res])
+        for k, f in enumerate(futures):
+            e[k::workers] = f.result()
+    kinds = np.array(scene_kinds(GeneratedDataset(root, None, idx)))
     return {"settings": settings, "images": len(e), "median": float(np.median(e)), "mean": float(e.mean()),
             "kinds": {k: float(np.median(e[kinds == k])) for k in sorted(set(kinds))},
             "seconds": time.perf_counter() - t}
