@@ -115,6 +115,38 @@ def test_the_cornell_box_under_a_sky_meets_the_request(name):
     actual = float(_rel(out.irradiance[:, 0], reference).square().mean().sqrt())
     assert rep.degree == 2 and rep.reached and rep.leaves <= 400
     assert actual <= 6e-3 and actual <= rep.estimated <= 1e-2
+    if name == "cornell_sky_r9":  # its rays grow (3 -> 6 per side, 16 -> 20 sky directions)
+        _same_under_another_clock(out, lambda: ti.render(scene, r, "sky", level, wavelengths=WL, accuracy=1e-2))
+
+
+def _same_under_another_clock(out, again) -> None:
+    """``again()`` gives ``out`` bit for bit while the planner's clock jumps by 1 ms to 1,000 s at random: its
+    choices (the growth of the ray counts included) are counts of work, not timings, so a render is the same from
+    run to run."""
+    import random
+
+    from torch_interreflect.accuracy import moments_plan
+
+    class Clock:
+        def __init__(self) -> None:
+            self.now, self.rng = 0.0, random.Random(0)
+
+        def perf_counter(self) -> float:
+            self.now += 10.0 ** self.rng.uniform(-3.0, 3.0)
+            return self.now
+
+    grown = [(h["visibility_samples"], h["sky_samples"]) for h in out.report.history if "sky_samples" in h]
+    assert grown, "the request should grow the rays here"
+    real = moments_plan.time
+    moments_plan.time = Clock()
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", AccuracyWarning)
+            other = again()
+    finally:
+        moments_plan.time = real
+    assert torch.equal(other.irradiance, out.irradiance)
+    assert [(h["visibility_samples"], h["sky_samples"]) for h in other.report.history if "sky_samples" in h] == grown
 
 
 def test_plan_reuse_and_gradients(groove):

@@ -28,10 +28,12 @@ at r = 0.2 with an actual 3.4 %).
 Rays (pairs that a third facet could block, and the sky's open part on their leaves where a facet's back may be in
 view) are sampled. At the last step both are drawn again at the same counts with other seeds (replicas,
 :func:`~torch_interreflect.formfactors.moments.resample_visibility` and
-:func:`~torch_interreflect.light_moments.sky_rays`); the answer is the mean of the two replicas, and half the change
-of the output that each replica makes is its part of the error (``parts["light"]``, the two added; half the change
-of two replicas is the RMS error of their mean). It is not lowered by refinement. While it keeps the total above the
-request, each count grows by the factor that brings its part down at the least cost, and the replicas are drawn
+:func:`~torch_interreflect.light_moments.sky_rays`); the answer is the mean of the two replicas, and the change
+of the output that each replica makes, over √2 (:data:`REPLICA_MARGIN`), is its part of the error
+(``parts["light"]``, the two added; half the change of two replicas is the RMS error of their mean, and the rest is
+a margin on so noisy a measure). It is not lowered by refinement. While it keeps the total above the
+request, each count grows by the factor that brings its part down at the least cost (the costs modelled from counts
+of pairs and rays, not timed, so that a render is the same bit for bit from run to run), and the replicas are drawn
 again at the new counts. (Before the replicas, the check with other rays and 1.5 × the sky directions was thrown
 away after it measured; on the Cornell box under a sky at 5e-3 the planner took 89 s at r = 0.9 and 30 s at
 r = 0.2, against 18 s and 18 s with the replicas, for errors from Mitsuba of 0.16 % / 0.30 % against
@@ -62,7 +64,8 @@ from .report import AccuracyReport
 
 __all__ = ["DEGREE", "HALVING_SHARE", "Q_EST", "Q_HALVING", "Q_LINEAR", "REPLICA_MARGIN", "MomentRefinement",
            "kernel_part", "leaf_light", "moment_quadrature_tol", "moment_report", "polynomial_allowed",
-           "refine_moments", "sky_points", "smooth_light", "solver_part", "solver_tolerance"]
+           "refine_moments", "sky_cost", "sky_points", "smooth_light", "solver_part", "solver_tolerance",
+           "visibility_cost"]
 
 #: Degree of the basis the planner solves on.
 DEGREE = 2
@@ -112,6 +115,14 @@ REPLICA_MARGIN = math.sqrt(2.0)
 #: the measured ray-cast parts keep the total above the request, the rays and the sky's directions grow, each by the
 #: factor that brings its part down at the least cost (:func:`_more_samples`).
 VISIBILITY_SAMPLES, MAX_VISIBILITY_SAMPLES = 3, 12
+
+#: Modelled seconds of a visibility replica per occluded pair (its exact unoccluded quadrature is computed again) and
+#: per ray, and of the sky's replica per ray: the growth of the ray counts weighs the two parts by these, not by
+#: timing them, so that a render is the same from run to run. Fitted on one thread to the replicas of the Cornell box
+#: (r = 0.9 and 0.2, 200–380 leaves, 3,700–18,300 occluded pairs, 0.6–3.8 M visibility and 3–34 M sky rays) and the
+#: W shape (162 leaves, 0.16–2.6 M rays): the model is within 25 % of each measured time (0.11–5.0 s). Only their
+#: ratios matter.
+VISIBILITY_PAIR_SECONDS, VISIBILITY_RAY_SECONDS, SKY_RAY_SECONDS = 5e-5, 1.9e-7, 1.5e-7
 
 
 @dataclass
@@ -308,17 +319,15 @@ def _ray_parts(pb: Problem, leaves: Leaves, lv: _Level, est: Tensor, share: floa
     while bool(lv.full.info["occluded_facets"].any()):
         replica += 1
         parts, cost = [torch.zeros_like(ray), torch.zeros_like(ray)], [0.0, 0.0]
-        t = time.perf_counter()
         K_b = resample_visibility(lv.full, seed=replica, visibility_samples=vis)
         x_b = _level(pb, leaves, share, degree=lv.degree, moments=K_b, sky=lv.sky).x
-        cost[0] = time.perf_counter() - t
+        cost[0] = visibility_cost(K_b)
         parts[0] = relative_change(x_b, lv.x).cpu() / REPLICA_MARGIN
         sky_b = None
         if lv.sky is not None and (lv.sky.escape_ids.numel() or lv.sky.back_ids.numel()):
-            t = time.perf_counter()
             sky_b = sky_rays(leaves.scene, lv.full, samples=sky, points=sky_points(sky), seed=replica)
             x_b = _level(pb, leaves, share, degree=lv.degree, moments=lv.full, sky=sky_b).x
-            cost[1] = time.perf_counter() - t
+            cost[1] = sky_cost(sky_b, sky)
             parts[1] = relative_change(x_b, lv.x).cpu() / REPLICA_MARGIN
         ray = parts[0] + parts[1]
         left = pb.accuracy - rms(est) - kernel_part(pb) - solver_part(pb)
@@ -347,6 +356,21 @@ def _ray_parts(pb: Problem, leaves: Leaves, lv: _Level, est: Tensor, share: floa
                         "seconds": time.perf_counter() - t_start, "visibility_samples": float(vis),
                         "sky_samples": float(sky)})
     return lv, ray, est
+
+
+def visibility_cost(moments: MomentFormFactors) -> float:
+    """Modelled seconds of a visibility replica (``moments`` the resampled form factors: their
+    ``info["occluded_pairs"]`` and ``info["rays"]``). A count of work, the same on every run
+    (:data:`VISIBILITY_PAIR_SECONDS`)."""
+    info = moments.info
+    return VISIBILITY_PAIR_SECONDS * int(info["occluded_pairs"]) + VISIBILITY_RAY_SECONDS * int(info["rays"])
+
+
+def sky_cost(sky: SkyRays, samples: int) -> float:
+    """Modelled seconds of the sky's replica ``sky`` cast at ``samples`` directions per axis (and :func:`sky_points`
+    points per axis) on each of its leaves (:data:`SKY_RAY_SECONDS`)."""
+    leaves = sky.escape_ids.numel() + sky.back_ids.numel()
+    return SKY_RAY_SECONDS * leaves * samples**2 * sky_points(samples) ** 2
 
 
 def sky_points(samples: int) -> int:
