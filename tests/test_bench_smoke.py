@@ -198,6 +198,7 @@ def test_pathtraced_test_set_agrees_with_the_library(tmp_path: Path) -> None:
     import torch
 
     from benchmarks import cc_pathtraced as pt
+    from benchmarks.cc_refine import noise_free_image
     from torch_interreflect.training import GeneratedDataset
     from torch_interreflect.training.metrics import angular_error
     from torch_interreflect.training.sample import load_resources
@@ -218,6 +219,9 @@ def test_pathtraced_test_set_agrees_with_the_library(tmp_path: Path) -> None:
         assert abs(float(a.norm() / b.norm()) - 1.0) < 0.01  # 0.36 % / 0.34 %
         white = cam(spd[None] / math.pi)[0]
         assert float(angular_error(white, torch.tensor(meta["illuminant"]["rgb_normalized"]))) < 1e-4
+        # cc_refine --image library: the same render from the sidecar's spectra (6 digits), its maximum 1
+        clean = noise_free_image(root, it["index"], it["geometry"], cam).permute(1, 2, 0).double()
+        assert torch.allclose(clean, torch.from_numpy(ours / ours.max()), rtol=0, atol=1e-6)  # 1.7e-7 / 1.1e-7
 
 
 def test_pathtraced_test_set_refuses_a_folder_of_another_configuration(tmp_path: Path) -> None:
