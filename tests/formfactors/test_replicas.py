@@ -41,6 +41,26 @@ def test_mean_of_visibility_replicas(cornell):
         mean_moments(K, moment_form_factors(scene, 2))
 
 
+def test_a_replica_is_the_moments_made_with_its_rays(cornell):
+    """Drawing the rays again evaluates only the occluded pairs' blocked part (their exact sums are kept): the same
+    bits as moments made from scratch with that seed and count, and with the original's own seed its own bits;
+    also after a split whose kept pairs were taken from the previous moments (exact sums included)."""
+    from torch_interreflect.accuracy.leaves import Leaves, split
+
+    scene, K = cornell
+    assert torch.equal(resample_visibility(K, seed=0).matrix, K.matrix)
+    for seed, ns in ((1, 3), (2, 5)):
+        R = resample_visibility(K, seed=seed, visibility_samples=ns)
+        assert torch.equal(R.matrix, moment_form_factors(scene, 2, seed=seed, visibility_samples=ns).matrix)
+        assert R.info["rays"] > 0 and R.info["occluded_pairs"] == K.info["occluded_pairs"]
+    sel = torch.zeros(scene.num_facets, dtype=torch.bool)
+    sel[::5] = True
+    leaves = split(Leaves(scene, torch.arange(scene.num_facets)), sel)
+    new = moment_form_factors(leaves.scene, 2, reuse=(K, leaves.kept))
+    assert new.info["reused_pairs"] > 0  # occluded ones among them: without their exact sums, 0.65 off
+    assert torch.equal(resample_visibility(new, seed=3).matrix, moment_form_factors(leaves.scene, 2, seed=3).matrix)
+
+
 def test_sky_replicas_and_their_mean(cornell):
     """Seed 0 is the light's own rotation (the same rays as before seeds existed); another seed rotates every facet's
     samples; the light of the mean of two replicas is the mean of their lights (it is affine in the rays); the mean

@@ -116,13 +116,13 @@ REPLICA_MARGIN = math.sqrt(2.0)
 #: factor that brings its part down at the least cost (:func:`_more_samples`).
 VISIBILITY_SAMPLES, MAX_VISIBILITY_SAMPLES = 3, 12
 
-#: Modelled seconds of a visibility replica per occluded pair (its exact unoccluded quadrature is computed again) and
-#: per ray, and of the sky's replica per ray: the growth of the ray counts weighs the two parts by these, not by
-#: timing them, so that a render is the same from run to run. Fitted on one thread to the replicas of the Cornell box
-#: (r = 0.9 and 0.2, 200–380 leaves, 3,700–18,300 occluded pairs, 0.6–3.8 M visibility and 3–34 M sky rays) and the
-#: W shape (162 leaves, 0.16–2.6 M rays): the model is within 25 % of each measured time (0.11–5.0 s). Only their
-#: ratios matter.
-VISIBILITY_PAIR_SECONDS, VISIBILITY_RAY_SECONDS, SKY_RAY_SECONDS = 5e-5, 1.9e-7, 1.5e-7
+#: Modelled seconds of a visibility replica per occluded pair (its outer points; the exact sums are kept) and per
+#: ray, and of the sky's replica per ray: the growth of the ray counts weighs the two parts by these, not by timing
+#: them, so that a render is the same from run to run. Fitted on one thread to the replicas (their solve included) of
+#: the Cornell box (r = 0.9 and 0.2, 200–380 leaves, 3,734–18,300 occluded pairs, 0.65–6.5 M visibility and
+#: 2.9–34 M sky rays) and the W shape (162 leaves, 1,984 pairs, 0.16–2.6 M rays): the model is within 15 % of each
+#: measured time (0.06–4.8 s). Only their ratios matter.
+VISIBILITY_PAIR_SECONDS, VISIBILITY_RAY_SECONDS, SKY_RAY_SECONDS = 1e-5, 1.9e-7, 1.5e-7
 
 
 @dataclass

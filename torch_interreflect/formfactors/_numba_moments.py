@@ -360,7 +360,7 @@ def build_rays(sel, start, dom, tgt, kind, rule, shift, rule_off, rule_u, rule_v
 @njit(parallel=True, cache=True)
 def pair_moments(todo, dom, tgt, kind, rule, shift, fine, rule_off, rule_u, rule_v, rule_w, edge_rule, vertex_rule,
                  corners, normals, cent, e1, e2, inv_l, triangle, deg, gx, gw, gx_fine, gw_fine, buf, sel_of, ray_start,
-                 blocked, ns, seed, out):
+                 blocked, ns, seed, out, exact_out):
     """``out[p, c, d] = Σ_o w_o m_c(x_o) ∫_tgt k(x_o, y) V(x_o, y) m_d(y) dA`` (monomials of ``dom`` and ``tgt``; m²)
     for the pairs ``p`` in ``todo``.
 
@@ -369,9 +369,11 @@ def pair_moments(todo, dom, tgt, kind, rule, shift, fine, rule_off, rule_u, rule
     ``gx_fine, gw_fine`` (pairs that touch) instead of ``gx, gw``. Occluded pairs (``sel_of[p] ≥ 0``): the
     exact unoccluded moments less the blocked part, estimated from the ``ns²`` jittered samples per outer point
     (``blocked`` from ``ray_start[sel_of[p]]``, in :func:`build_rays`' order): an unbiased estimate, exact where
-    nothing is blocked. (The ratio estimator that scales the blocked part by the exact over the sampled kernel,
-    as the constant basis's visible fraction does, was biased here: on the Cornell box with its floor's leaves
-    split, 3 × 3 rays per point moved every facet by −1.8 % on average, against −0.15 % unscaled.)
+    nothing is blocked. Their exact unoccluded moments go to ``exact_out[sel_of[p]]`` as well, so that rays drawn
+    again need only the blocked part (:func:`blocked_moments`; ``out = exact − blocked`` in both, the same bits).
+    (The ratio estimator that scales the blocked part by the exact over the sampled kernel, as the constant basis's
+    visible fraction does, was biased here: on the Cornell box with its floor's leaves split, 3 × 3 rays per point
+    moved every facet by −1.8 % on average, against −0.15 % unscaled.)
     """
     nb = 1 if deg == 0 else (3 if deg == 1 else 6)
     n2 = ns * ns
@@ -420,25 +422,79 @@ def pair_moments(todo, dom, tgt, kind, rule, shift, fine, rule_off, rule_u, rule
             for k in range(4):
                 V[k, 0], V[k, 1], V[k, 2] = corners[j, k, 0], corners[j, k, 1], corners[j, k, 2]
             t = sel_of[p]
+            acc_b = np.zeros((nb, nb))
             for o in range(n):
                 x[0], x[1], x[2] = X[o, 0], X[o, 1], X[o, 2]
                 inner_exact(x, ni, V, 4, nj, cent[j], e1[j], e2[j], inv_l[j], deg, ax, aw, W, mom)
-                if t >= 0 and mom[0] > 0.0:
-                    base = ray_start[t] + o * n2
-                    for s in range(n2):
-                        if blocked[base + s]:
-                            y0, y1, y2, w = _sample(corners[j], triangle[j], ns, s, seed, p, o)
-                            kv = _point_kernel(x[0], x[1], x[2], ni, y0, y1, y2, nj) * w
-                            py, qq = _frame_coords(y0, y1, y2, cent[j], e1[j], e2[j], inv_l[j])
-                            _monomials(py, qq, deg, my)
-                            for d in range(nb):
-                                mom[d] -= kv * my[d]
                 px, qx_ = _frame_coords(x[0], x[1], x[2], cent[i], e1[i], e2[i], inv_l[i])
                 _monomials(px, qx_, deg, mx)
                 _accumulate(acc, Wt[o], mx, mom, nb)
+                if t >= 0:
+                    _blocked_point(x, ni, nj, corners[j], triangle[j], cent[j], e1[j], e2[j], inv_l[j], deg, ns,
+                                   seed, p, o, blocked, ray_start[t] + o * n2, my, mom, acc_b, Wt[o], mx, nb)
+            if t >= 0:
+                for c in range(nb):
+                    for d in range(nb):
+                        exact_out[t, c, d] = acc[c, d]
+                        acc[c, d] -= acc_b[c, d]
         for c in range(nb):
             for d in range(nb):
                 out[p, c, d] = acc[c, d]
+
+
+@njit(cache=True, inline="always")
+def _blocked_point(x, ni, nj, Cj, tri, cj, e1j, e2j, inv_lj, deg, ns, seed, p, o, blocked, base, my, mom, acc_b, wt,
+                   mx, nb):
+    """Add to ``acc_b`` the blocked part of the outer point ``x`` (its monomials ``mx``, weight ``wt``): the kernel
+    times the target's monomials at its blocked samples (``blocked[base + s]``). The kernel is 0 at samples the
+    point does not face, so no exact integral is needed to skip them."""
+    hit = False
+    for d in range(nb):
+        mom[d] = 0.0
+    for s in range(ns * ns):
+        if blocked[base + s]:
+            y0, y1, y2, w = _sample(Cj, tri, ns, s, seed, p, o)
+            kv = _point_kernel(x[0], x[1], x[2], ni, y0, y1, y2, nj) * w
+            if kv > 0.0:
+                hit = True
+                py, qq = _frame_coords(y0, y1, y2, cj, e1j, e2j, inv_lj)
+                _monomials(py, qq, deg, my)
+                for d in range(nb):
+                    mom[d] += kv * my[d]
+    if hit:
+        _accumulate(acc_b, wt, mx, mom, nb)
+
+
+@njit(parallel=True, cache=True)
+def blocked_moments(sel, ray_start, dom, tgt, kind, rule, shift, rule_off, rule_u, rule_v, rule_w, edge_rule,
+                    vertex_rule, corners, normals, cent, e1, e2, inv_l, triangle, deg, buf, blocked, ns, seed, out):
+    """``out[t] = Σ_o w_o m(x_o) ⊗ Σ_(blocked s) k(x_o, y_s) m(y_s) w_s``: the blocked part of the occluded pair
+    ``sel[t]`` alone (its rays from ``ray_start[t]``), which :func:`pair_moments` subtracts from the exact moments;
+    no exact inner integral is evaluated."""
+    nb = 1 if deg == 0 else (3 if deg == 1 else 6)
+    n2 = ns * ns
+    for t in prange(sel.shape[0]):
+        p = sel[t]
+        i, j = dom[p], tgt[p]
+        acc_b = np.zeros((nb, nb))
+        X = np.empty((buf, 3))
+        Wt = np.empty(buf)
+        x = np.empty(3)
+        mx = np.empty(nb)
+        my = np.empty(nb)
+        mom = np.empty(nb)
+        n = outer_points(p, dom, tgt, kind, rule, shift, rule_off, rule_u, rule_v, rule_w, edge_rule, vertex_rule,
+                         corners, normals, X, Wt)
+        ni, nj = normals[i], normals[j]
+        for o in range(n):
+            x[0], x[1], x[2] = X[o, 0], X[o, 1], X[o, 2]
+            px, qx_ = _frame_coords(x[0], x[1], x[2], cent[i], e1[i], e2[i], inv_l[i])
+            _monomials(px, qx_, deg, mx)
+            _blocked_point(x, ni, nj, corners[j], triangle[j], cent[j], e1[j], e2[j], inv_l[j], deg, ns, seed, p, o,
+                           blocked, ray_start[t] + o * n2, my, mom, acc_b, Wt[o], mx, nb)
+        for c in range(nb):
+            for d in range(nb):
+                out[t, c, d] = acc_b[c, d]
 
 
 @njit(parallel=True, cache=True)

@@ -76,8 +76,8 @@ def _box(corners: Tensor) -> Tensor:
 def reused_sums(setup: dict[str, Any], old: tuple[dict[str, Any], np.ndarray], old_of: np.ndarray,
                 acc: np.ndarray) -> np.ndarray:
     """Copy into ``acc [P, nb, nb]`` the monomial sums of the pairs whose two facets were a pair of the previous
-    moments ``old = (setup, acc)`` and need rays there as here (transposed where domain and target swapped); the
-    pairs left to integrate.
+    moments ``old = (setup, acc)`` and need rays there as here (transposed where domain and target swapped), and the
+    occluded ones' exact unoccluded sums into ``setup["exact"]``; the pairs left to integrate.
 
     Args:
         setup: The new pairs (``dom``, ``tgt``, ``need``; :func:`~.moments.moment_form_factors`' set-up).
@@ -108,4 +108,10 @@ def reused_sums(setup: dict[str, Any], old: tuple[dict[str, Any], np.ndarray], o
         turned = odom[q] != od[p]  # domain and target swapped: the monomial sums transposed
         acc[p] = np.where(turned[:, None, None], old_acc[q].transpose(0, 2, 1), old_acc[q])
         todo[p] = False
+        occ = setup["need"].numpy()[p]  # occluded pairs: their exact unoccluded sums too, where both keep them
+        if occ.any() and "exact" in setup and "exact" in old_setup:
+            po, qo, to = p[occ], q[occ], turned[occ]
+            old_exact = old_setup["exact"][old_setup["need_rank"][qo]]
+            setup["exact"][setup["need_rank"][po]] = np.where(to[:, None, None], old_exact.transpose(0, 2, 1),
+                                                              old_exact)
     return np.nonzero(todo)[0].astype(np.int64)

@@ -370,6 +370,10 @@ def moment_form_factors(
     setup = _pairs(sc, degree, quadrature_tol, plane_eps(scene), occlusion)
     basis = facet_basis(sc, degree)
     acc = np.zeros((setup["dom"].numel(), nb, nb))
+    need_np = setup["need"].numpy()
+    # the occluded pairs' exact unoccluded sums, kept so that their rays can be drawn again alone
+    setup["need_rank"] = np.cumsum(need_np) - 1
+    setup["exact"] = np.zeros((int(need_np.sum()), nb, nb))
     todo = np.arange(acc.shape[0], dtype=np.int64)
     if reuse is not None and old_of is not None:
         todo = reused_sums(setup, reuse[0].info["_sums"][1:], old_of, acc)
@@ -405,7 +409,8 @@ def moment_form_factors(
 def resample_visibility(moments: MomentFormFactors, *, seed: int, visibility_samples: int | None = None
                         ) -> MomentFormFactors:
     """The same moments with the occluded pairs' rays drawn again (another ``seed``, optionally another
-    ``visibility_samples``); the other pairs' sums are reused, so this costs the occluded pairs alone. The change
+    ``visibility_samples``); the other pairs' sums are reused, and of the occluded pairs only the blocked part is
+    evaluated (their exact unoccluded sums are kept), so this costs the rays alone. The change
     between the two measures the sampled visibility's error (:mod:`torch_interreflect.accuracy.moments_plan`).
 
     Raises:
@@ -420,9 +425,19 @@ def resample_visibility(moments: MomentFormFactors, *, seed: int, visibility_sam
     check_count(ns, "visibility_samples", note=" (rays per side of the target)")
     t0 = time.perf_counter()
     kern = _kernel()
-    todo = torch.nonzero(setup["need"]).reshape(-1).numpy().astype(np.int64)
+    sel = torch.nonzero(setup["need"]).reshape(-1).numpy().astype(np.int64)
     acc = acc.copy()
-    rays = _pair_sums(kern, setup, moments.basis, todo, ns, int(seed), acc)
+    ray_start, blocked = _cast(kern, setup, sel, ns, int(seed))
+    nb = moments.basis.size
+    part = np.zeros((sel.size, nb, nb))
+    if sel.size:
+        b = moments.basis
+        launch(kern.blocked_moments, sel, ray_start, *setup["pairs"], *setup["rules"], setup["corners"],
+               setup["normals"], b.centroids.numpy(), b.axes[:, 0].contiguous().numpy(),
+               b.axes[:, 1].contiguous().numpy(), (1.0 / b.scale).numpy(), setup["triangle"], int(b.degree),
+               setup["buf"], blocked, ns, int(seed), part)
+        acc[sel] = setup["exact"][setup["need_rank"][sel]] - part
+    rays = int(blocked.size)
     G = _assemble(kern, sc, setup, moments.basis, acc, base=moments.matrix)
     settings = dict(moments.info.get("settings", {}), visibility_samples=ns)
     info = dict(moments.info, rays=rays, visibility_samples=ns, seconds=time.perf_counter() - t0,
@@ -453,18 +468,22 @@ def mean_moments(a: MomentFormFactors, b: MomentFormFactors) -> MomentFormFactor
 
 def _pair_sums(kern: Any, setup: dict[str, Any], basis: FacetBasis, todo: np.ndarray, ns: int, seed: int,
                acc: np.ndarray) -> int:
-    """Fill ``acc[todo]`` with the pairs' monomial sums (rays cast for the occluded ones among them); the ray count."""
+    """Fill ``acc[todo]`` with the pairs' monomial sums (rays cast for the occluded ones among them, whose exact
+    unoccluded sums go to ``setup["exact"]``); the ray count."""
     need = setup["need"].numpy()
     sel = todo[need[todo]]
     sel_of = np.full(setup["dom"].numel(), -1, dtype=np.int64)
     sel_of[sel] = np.arange(sel.size)
     ray_start, blocked = _cast(kern, setup, sel, ns, seed)
     tri = setup["triangle"]
+    exact = np.zeros((max(1, sel.size), basis.size, basis.size))
     if todo.size:
         launch(kern.pair_moments, todo, *setup["pairs"], setup["fine"], *setup["rules"], setup["corners"],
                setup["normals"], basis.centroids.numpy(), basis.axes[:, 0].contiguous().numpy(),
                basis.axes[:, 1].contiguous().numpy(), (1.0 / basis.scale).numpy(), tri, int(basis.degree),
-               *setup["angular"], setup["buf"], sel_of, ray_start, blocked, ns, seed, acc)
+               *setup["angular"], setup["buf"], sel_of, ray_start, blocked, ns, seed, acc, exact)
+    if sel.size:
+        setup["exact"][setup["need_rank"][sel]] = exact[:sel.size]
     return int(blocked.size)
 
 
