@@ -21,8 +21,8 @@ box under uniform light at 1e-3: estimated 0.14 %, actual 0.38 %). On such scene
 rough leaf found by the light's own shadow points) the planner estimates by *halving* instead: the first level is
 solved, every leaf is split in four and solved again, and a user facet's estimate is :data:`Q_HALVING` times the
 change of its output when its leaves were last split; the facets carrying the excess are split again. On the
-Cornell box under a sky at 1e-2 this reaches 0.19 % / 0.26 % from Mitsuba (r = 0.9 / 0.2) with 236 leaves in 8.8 s /
-3.9 s, estimated 0.65 % / 0.95 % (the constant basis took 4,448 leaves and 28 s for 0.30 % at r = 0.9, and warned
+Cornell box under a sky at 1e-2 this reaches 0.064 % / 0.26 % from Mitsuba (r = 0.9 / 0.2) with 236 leaves in 7.8 s /
+3.4 s, estimated 0.68 % / 0.95 % (the constant basis took 4,448 leaves and 28 s for 0.30 % at r = 0.9, and warned
 at r = 0.2 with an actual 3.4 %).
 
 Rays (pairs that a third facet could block, and the sky's open part on their leaves where a facet's back may be in
