@@ -370,37 +370,24 @@ def moment_form_factors(
     setup = _pairs(sc, degree, quadrature_tol, plane_eps(scene), occlusion)
     basis = facet_basis(sc, degree)
     acc = np.zeros((setup["dom"].numel(), nb, nb))
-    need_np = setup["need"].numpy()
-    # the occluded pairs' exact unoccluded sums, kept so that their rays can be drawn again alone
-    setup["need_rank"] = np.cumsum(need_np) - 1
-    setup["exact"] = np.zeros((int(need_np.sum()), nb, nb))
+    need_np = setup["need"].numpy()  # the occluded pairs' exact sums are kept: their rays can be drawn again alone
+    setup["need_rank"], setup["exact"] = np.cumsum(need_np) - 1, np.zeros((int(need_np.sum()), nb, nb))
     todo = np.arange(acc.shape[0], dtype=np.int64)
     if reuse is not None and old_of is not None:
         todo = reused_sums(setup, reuse[0].info["_sums"][1:], old_of, acc)
     total = _pair_sums(kern, setup, basis, todo, int(visibility_samples), int(seed), acc)
     G = _assemble(kern, sc, setup, basis, acc)
     dom, tgt, need = setup["dom"], setup["tgt"], setup["need"]
-    F = sc.num_facets
     kind = torch.from_numpy(setup["pairs"][2])
-    occ_facets = torch.zeros(F, dtype=torch.bool)
-    if bool(need.any()):
-        occ_facets[dom[need]] = True
-        occ_facets[tgt[need]] = True
+    occ_facets = torch.zeros(sc.num_facets, dtype=torch.bool)
+    occ_facets[dom[need]] = True
+    occ_facets[tgt[need]] = True
     matrix = torch.from_numpy(G).to(dtype=scene.dtype, device=scene.device)
     info = {
-        "method": "moments",
-        "degree": int(degree),
-        "quadrature_tol": float(quadrature_tol),
-        "pairs": int(dom.numel()),
-        "far": int((kind == 1).sum()),
-        "clipped": int((kind == 2).sum()),
-        "occluded_pairs": int(need.sum()),
-        "occluded_facets": occ_facets,
-        "rays": total,
-        "visibility_samples": int(visibility_samples),
-        "seconds": time.perf_counter() - t_start,
-        "reused_pairs": int(acc.shape[0] - todo.size),
-        "settings": settings,
+        "method": "moments", "degree": int(degree), "quadrature_tol": float(quadrature_tol), "pairs": int(dom.numel()),
+        "far": int((kind == 1).sum()), "clipped": int((kind == 2).sum()), "occluded_pairs": int(need.sum()),
+        "occluded_facets": occ_facets, "rays": total, "visibility_samples": int(visibility_samples),
+        "seconds": time.perf_counter() - t_start, "reused_pairs": int(acc.shape[0] - todo.size), "settings": settings,
         "_sums": (sc, setup, acc),  # for resample_visibility and reuse: the pairs and their sums
     }
     return MomentFormFactors(matrix, scene.areas.detach().to(scene.dtype), basis, info)
@@ -428,14 +415,11 @@ def resample_visibility(moments: MomentFormFactors, *, seed: int, visibility_sam
     sel = torch.nonzero(setup["need"]).reshape(-1).numpy().astype(np.int64)
     acc = acc.copy()
     ray_start, blocked = _cast(kern, setup, sel, ns, int(seed))
-    nb = moments.basis.size
-    part = np.zeros((sel.size, nb, nb))
+    part = np.zeros((sel.size, moments.basis.size, moments.basis.size))
     if sel.size:
-        b = moments.basis
         launch(kern.blocked_moments, sel, ray_start, *setup["pairs"], *setup["rules"], setup["corners"],
-               setup["normals"], b.centroids.numpy(), b.axes[:, 0].contiguous().numpy(),
-               b.axes[:, 1].contiguous().numpy(), (1.0 / b.scale).numpy(), setup["triangle"], int(b.degree),
-               setup["buf"], blocked, ns, int(seed), part)
+               setup["normals"], *_frames(moments.basis), setup["triangle"], int(moments.basis.degree), setup["buf"],
+               blocked, ns, int(seed), part)
         acc[sel] = setup["exact"][setup["need_rank"][sel]] - part
     rays = int(blocked.size)
     G = _assemble(kern, sc, setup, moments.basis, acc, base=moments.matrix)
@@ -479,12 +463,17 @@ def _pair_sums(kern: Any, setup: dict[str, Any], basis: FacetBasis, todo: np.nda
     exact = np.zeros((max(1, sel.size), basis.size, basis.size))
     if todo.size:
         launch(kern.pair_moments, todo, *setup["pairs"], setup["fine"], *setup["rules"], setup["corners"],
-               setup["normals"], basis.centroids.numpy(), basis.axes[:, 0].contiguous().numpy(),
-               basis.axes[:, 1].contiguous().numpy(), (1.0 / basis.scale).numpy(), tri, int(basis.degree),
-               *setup["angular"], setup["buf"], sel_of, ray_start, blocked, ns, seed, acc, exact)
+               setup["normals"], *_frames(basis), tri, int(basis.degree), *setup["angular"], setup["buf"], sel_of,
+               ray_start, blocked, ns, seed, acc, exact)
     if sel.size:
         setup["exact"][setup["need_rank"][sel]] = exact[:sel.size]
     return int(blocked.size)
+
+
+def _frames(basis: FacetBasis) -> tuple[np.ndarray, ...]:
+    """Each facet's frame for the compiled loops: centroids, the two axes and one over the scale."""
+    return (basis.centroids.numpy(), basis.axes[:, 0].contiguous().numpy(), basis.axes[:, 1].contiguous().numpy(),
+            (1.0 / basis.scale).numpy())
 
 
 def _assemble(kern: Any, sc: Scene, setup: dict[str, Any], basis: FacetBasis, acc: np.ndarray,
