@@ -108,8 +108,8 @@ def reused_sums(setup: dict[str, Any], old: tuple[dict[str, Any], np.ndarray], o
         turned = odom[q] != od[p]  # domain and target swapped: the monomial sums transposed
         acc[p] = np.where(turned[:, None, None], old_acc[q].transpose(0, 2, 1), old_acc[q])
         todo[p] = False
-        occ = setup["need"].numpy()[p]  # occluded pairs: their exact unoccluded sums too, where both keep them
-        if occ.any() and "exact" in setup and "exact" in old_setup:
+        occ = setup["need"].numpy()[p]  # occluded pairs: their exact unoccluded sums too
+        if occ.any():
             po, qo, to = p[occ], q[occ], turned[occ]
             old_exact = old_setup["exact"][old_setup["need_rank"][qo]]
             setup["exact"][setup["need_rank"][po]] = np.where(to[:, None, None], old_exact.transpose(0, 2, 1),

@@ -234,7 +234,8 @@ def _kernel() -> Any:
 def _pairs(sc: Scene, degree: int, tol: float, eps: float, occlusion: Literal["auto"] | bool) -> dict[str, Any]:
     """The pairs of the moments, each unordered pair once with its domain (the smaller facet, or the one whose edge
     lies on the other's: :func:`_contacts`), its kind (0 exact inner, 1 product Gauss, 2 clipped domain), rule,
-    rotation and angular rule, and which pairs need rays; in the arrays the compiled loops take."""
+    rotation and angular rule, and which pairs need rays; in the arrays the compiled loops take. ``exact`` (indexed
+    by ``need_rank``) will hold the occluded pairs' exact unoccluded sums, so their rays can be drawn again alone."""
     kern = _kernel()
     iu, ju = facing_pairs(sc, eps, ("dense", 8))
     dom, tgt = order_pairs(sc.areas, iu, ju)
@@ -267,7 +268,9 @@ def _pairs(sc: Scene, degree: int, tol: float, eps: float, occlusion: Literal["a
     n_reg, n_fine = angular_orders(tol)
     pairs = [t.contiguous().numpy() for t in (dom, tgt, kind, rule, shift)]
     buf = int(kern.max_points(pairs[2], pairs[3], off, edge_rule, vertex_rule)) if dom.numel() else 1
-    return {"dom": dom, "tgt": tgt, "need": need, "pairs": pairs, "fine": (touch | clip_d).numpy(),
+    nb = basis_size(degree)
+    return {"dom": dom, "tgt": tgt, "need": need, "need_rank": np.cumsum(need.numpy()) - 1,
+            "exact": np.zeros((int(need.sum()), nb, nb)), "pairs": pairs, "fine": (touch | clip_d).numpy(),
             "rules": (off, ru, rv, rw, edge_rule, vertex_rule), "buf": buf,
             "angular": (*np.polynomial.legendre.leggauss(n_reg), *np.polynomial.legendre.leggauss(n_fine)),
             "corners": sc.corners.contiguous().numpy(), "normals": sc.normals.contiguous().numpy(),
@@ -370,8 +373,6 @@ def moment_form_factors(
     setup = _pairs(sc, degree, quadrature_tol, plane_eps(scene), occlusion)
     basis = facet_basis(sc, degree)
     acc = np.zeros((setup["dom"].numel(), nb, nb))
-    need_np = setup["need"].numpy()  # the occluded pairs' exact sums are kept: their rays can be drawn again alone
-    setup["need_rank"], setup["exact"] = np.cumsum(need_np) - 1, np.zeros((int(need_np.sum()), nb, nb))
     todo = np.arange(acc.shape[0], dtype=np.int64)
     if reuse is not None and old_of is not None:
         todo = reused_sums(setup, reuse[0].info["_sums"][1:], old_of, acc)
