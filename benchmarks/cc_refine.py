@@ -13,7 +13,7 @@ geometry (the model the refinement fits, exactly): what is left is the fit's own
 ambiguity where the interreflections are weak, and local minima), not the path tracer's noise or the model's
 mismatch. ``--out`` defaults to ``results/cc_refine.md`` or ``results/cc_refine_library.md``.
 
-    python -m benchmarks.cc_refine --count 100 --settings '{}' '{"reflectance_prior": 1e-5}' '{"steps": 400}'
+    python -m benchmarks.cc_refine --count 100 --settings '{}' '{"optimizer": "lbfgs", "reflectance_prior": 1e-4}'
     python -m benchmarks.cc_refine --count 100 --image library
 """
 
@@ -97,8 +97,9 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--count", type=int, default=100, help="the first images of the set")
     p.add_argument("--offset", type=float, default=6.0, help="degrees between the start and the true illuminant")
     p.add_argument("--workers", type=int, default=2)
-    p.add_argument("--settings", nargs="+", default=["{}", '{"reflectance_prior": 1e-5}', '{"steps": 400}',
-                                                      '{"reflectance_prior": 1e-5, "steps": 400}'])
+    p.add_argument("--settings", nargs="+", default=[
+        "{}", '{"reflectance_prior": 1e-4}', '{"optimizer": "lbfgs", "reflectance_prior": 1e-4}',
+        '{"optimizer": "lbfgs", "reflectance_prior": 1e-5, "steps": 400}'])
     p.add_argument("--image", choices=("mitsuba", "library"), default="mitsuba",
                    help="Mitsuba's image, or the library's noise-free render of the same spectra")
     p.add_argument("--out", default=None)
