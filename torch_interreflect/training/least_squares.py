@@ -2,8 +2,10 @@
 
 Minimises ``f(θ) = min_s ‖s p(θ) − o‖² + Σ_i w_i (θ_i − c_i)²`` over the ``free`` entries of ``θ``: the model's
 overall scale ``s`` is projected out in closed form (variable projection, with Kaufman's Jacobian
-``s (I − u uᵀ) J``, ``u = p / ‖p‖``), and each step solves ``(Jᵀ J + W + ν diag(Jᵀ J + W)) δ = −∇f / 2``. A step is
-taken only when it lowers ``f``; ``ν`` is divided by 3 after a taken step and doubled after a refused one.
+``s (I − u uᵀ) J``, ``u = p / ‖p‖``, exact for the gradient since the residual is orthogonal to ``u``), the priors
+enter the normal equations as ``W = diag(w)``, and each step solves ``(Jᵀ J + W + ν diag(Jᵀ J + W)) δ = −∇f / 2``.
+A step is taken only when it lowers ``f``; ``ν`` is divided by 3 after a taken step and doubled after a refused one,
+at most :data:`MAX_REFUSALS` times in a row (then the fit stops where it is).
 """
 
 from __future__ import annotations
@@ -14,7 +16,10 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-__all__ = ["LMResult", "best_scale", "scaled_least_squares"]
+__all__ = ["MAX_REFUSALS", "LMResult", "best_scale", "scaled_least_squares"]
+
+#: Refused steps in a row (``ν`` doubled each time, 1024× in all) after which the fit stops.
+MAX_REFUSALS = 10
 
 
 @dataclass
@@ -37,7 +42,15 @@ class LMResult:
 
 
 def best_scale(p: Tensor, o: Tensor) -> Tensor:
-    """``argmin_s ‖s p − o‖²`` (0 for a zero ``p``)."""
+    """``argmin_s ‖s p − o‖²`` (0 for a zero ``p``).
+
+    Args:
+        p: The model. Shape ``[N]``.
+        o: The observation. Shape ``[N]``.
+
+    Returns:
+        ``s``, a 0-d tensor.
+    """
     return (p @ o) / (p @ p).clamp_min(1e-300)
 
 
@@ -70,6 +83,9 @@ def scaled_least_squares(
 
     Returns:
         An :class:`LMResult`.
+
+    Shape:
+        - observed: ``[N]``; theta, weights, centre: ``[P]``; free: ``[Q]``; the Jacobian ``[N, Q]``
     """
 
     def loss(th: Tensor, p: Tensor) -> tuple[float, float]:
@@ -89,9 +105,11 @@ def scaled_least_squares(
         jr = s * (jac - u[:, None] * (u @ jac))  # the residual's Jacobian with s projected out
         a = jr.T @ jr + torch.diag(w)
         grad = jr.T @ res + w * (theta[free] - centre[free])
+        if not bool(grad.any()):  # a stationary point (e.g. a zero image): no step can lower f
+            break
         diag = a.diagonal().clamp_min(1e-30)
         taken = False
-        for _ in range(30):
+        for _ in range(MAX_REFUSALS):
             step = torch.linalg.solve(a + nu * torch.diag(diag), -grad)
             trial = theta.clone()
             trial[free] += step

@@ -40,13 +40,14 @@ from ..camera.view import View
 from ..errors import AccuracyWarning, ValueRangeError, collect_warnings
 from ..geometry.scene import Scene
 from ..solver.api import radiance, solve
+from ..solver.plan import RECIPROCITY_RTOL
 from .least_squares import scaled_least_squares
-from .rerender import MaterialImage
+from .rerender import MaterialImage, reciprocity_error
 
 __all__ = ["LM_MAX_FACETS", "OPTIMIZERS", "RefinedIlluminant", "code_for_rgb", "gathered_model", "refine_illuminant"]
 
 #: ``optimizer="auto"`` takes Levenberg–Marquardt up to this many facets (its factors take ``8 L F²`` bytes: 260 MB
-#: at 1,024 facets and 31 wavelengths), L-BFGS above.
+#: at 1,024 facets and 31 wavelengths) when the form factors are reciprocal (for infinite bounces), L-BFGS otherwise.
 LM_MAX_FACETS = 1024
 OPTIMIZERS = ("auto", "lm", "lbfgs")
 
@@ -189,20 +190,21 @@ def refine_illuminant(
             made with uniform 2 × 2 rays (before 0.2.0), the median error was 2.33° (mean 4.15°) modelled with
             those rays, and 1.6–2.2° (mean 3.2–3.6°) with any of uniform 8 × 8 or 16 × 16 rays or edge rays 8 or 16,
             whose differences are within a 20-image median's noise; residuals 3–7 %, Mitsuba's noise mostly.
-        optimizer: ``"auto"`` (Levenberg–Marquardt up to :data:`LM_MAX_FACETS` facets, else L-BFGS), ``"lm"`` or
-            ``"lbfgs"``. On the 100 images above (2 processes, one thread each): L-BFGS with its former defaults
-            (``μ = 1e-4``, 150 iterations) 1.44° / 3.10° in 177 s; Levenberg–Marquardt at ``μ = 1e-4`` 1.63° / 2.83°,
-            the same per-kind medians within 0.04° (Cornell box 0.87° / 0.88°, V-grooves 3.00° / 2.97°, W shapes
-            1.69° / 1.72°) with fewer local minima; at ``μ = 3e-5`` 1.36° / 2.18°. The Levenberg–Marquardt settings
-            took 144–188 s (three runs). L-BFGS at ``μ = 1e-5`` with 400 iterations gave 1.23° / 2.68° in 2.1× its
-            default time (an earlier run).
+        optimizer: ``"auto"`` (Levenberg–Marquardt up to :data:`LM_MAX_FACETS` facets with reciprocal form factors,
+            else L-BFGS), ``"lm"`` or ``"lbfgs"``. On the 100 images above (2 processes, one thread each): L-BFGS
+            with its former defaults (``μ = 1e-4``, 150 iterations) 1.44° / 3.10° in 177 s; Levenberg–Marquardt at
+            ``μ = 1e-4`` 1.63° / 2.83°, the same per-kind medians within 0.04° (Cornell box 0.87° / 0.88°,
+            V-grooves 3.00° / 2.97°, W shapes 1.69° / 1.72°) with fewer local minima; at ``μ = 3e-5`` 1.36° /
+            2.18°. The Levenberg–Marquardt settings took 144–188 s (three runs). L-BFGS at ``μ = 1e-5`` with 400
+            iterations gave 1.23° / 2.68° in 2.1× its default time (an earlier run).
 
     Returns:
         A :class:`RefinedIlluminant`.
 
     Raises:
         ValueRangeError: a negative or non-finite ``prior_weight``, ``reflectance_prior`` or
-            ``illuminant_prior``; ``steps`` not a positive integer.
+            ``illuminant_prior``; ``steps`` not a positive integer; with ``optimizer="lm"``, ``bounces`` below 1 or
+            form factors that are not reciprocal (:class:`~.rerender.MaterialImage`).
         ValueError: an unknown ``optimizer``.
     """
     for name, val in (("prior_weight", prior_weight), ("reflectance_prior", reflectance_prior),
@@ -233,7 +235,8 @@ def refine_illuminant(
     seen = ((seen.to_dense() if seen.layout != torch.strided else seen).sum(1) > 1e-9)
     ff = geometry["form_factors"]
     if optimizer == "auto":
-        optimizer = "lm" if ff.matrix.shape[0] <= LM_MAX_FACETS else "lbfgs"
+        small = ff.matrix.shape[0] <= LM_MAX_FACETS
+        optimizer = "lm" if small and (bounces is not None or reciprocity_error(ff) <= RECIPROCITY_RTOL) else "lbfgs"
     c0 = code_for_rgb(init_rgb, basis, cam)
     # λ ‖c − c₀‖² + ν ‖c‖² = (λ + ν) ‖c − λ c₀ / (λ + ν)‖² + const
     pull = prior_weight + illuminant_prior
@@ -267,42 +270,47 @@ def _decode(code: Tensor, a: Tensor, basis: tuple[Tensor, ...], refl_basis: tupl
     return z, nnf.softplus(z), u, u.clamp(0.01, 0.95)
 
 
+def _tangents(theta: Tensor, basis: tuple[Tensor, ...], refl_basis: tuple[Tensor, ...], num_materials: int
+              ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """``(S, R, ∂S/∂θ [P, L], ∂R/∂θ [P, M, L])`` at ``θ = (c [K], a [M·K_r])`` (:func:`_decode`; the clamp of ``R``
+    passes no derivative)."""
+    _, comps, scale = basis
+    _, r_sigma, r_comps = refl_basis
+    k, kr, m = comps.shape[0], r_comps.shape[0], num_materials
+    z, spd, u, refl = _decode(theta[:k], theta[k:].reshape(m, kr), basis, refl_basis)
+    spd_t = theta.new_zeros(k + m * kr, comps.shape[1])
+    spd_t[:k] = torch.sigmoid(z) * scale[:, None] * comps
+    inside = ((u > 0.01) & (u < 0.95)).to(theta.dtype)
+    refl_t = theta.new_zeros(k + m * kr, m, comps.shape[1])
+    for j in range(m):
+        refl_t[k + j * kr : k + (j + 1) * kr, j] = r_sigma[:, None] * r_comps * inside[j]
+    return spd, refl, spd_t, refl_t
+
+
 def _fit_lm(model: MaterialImage, obs: Tensor, c0: Tensor, basis: tuple[Tensor, ...],
             refl_basis: tuple[Tensor, ...], prior: tuple[float, Tensor, float], steps: int
             ) -> tuple[Tensor, Tensor, float, float, int]:
     """Levenberg–Marquardt on ``θ = (c, a)``: the reflectances for the starting illuminant first, then both."""
-    _, comps, scale = basis
-    _, r_sigma, r_comps = refl_basis
-    k, kr, m = comps.shape[0], r_comps.shape[0], model.num_materials
-    n_wl = comps.shape[1]
+    k, kr, m = basis[1].shape[0], refl_basis[2].shape[0], model.num_materials
     obs = obs.reshape(-1)
 
-    def split(theta: Tensor) -> tuple[Tensor, Tensor]:
-        return theta[:k], theta[k:].reshape(m, kr)
-
     def image(theta: Tensor) -> Tensor:
-        _, spd, _, refl = _decode(*split(theta), basis, refl_basis)
+        _, spd, _, refl = _decode(theta[:k], theta[k:].reshape(m, kr), basis, refl_basis)
         return model(spd, refl).reshape(-1)
 
     def image_jacobian(theta: Tensor, free: Tensor) -> tuple[Tensor, Tensor]:
-        z, spd, u, refl = _decode(*split(theta), basis, refl_basis)
-        spd_t = torch.zeros(k + m * kr, n_wl, dtype=torch.float64)
-        spd_t[:k] = torch.sigmoid(z) * scale[:, None] * comps
-        inside = ((u > 0.01) & (u < 0.95)).to(torch.float64)  # the clamp passes no derivative
-        refl_t = torch.zeros(k + m * kr, m, n_wl, dtype=torch.float64)
-        for j in range(m):
-            refl_t[k + j * kr : k + (j + 1) * kr, j] = r_sigma[:, None] * r_comps * inside[j]
+        spd, refl, spd_t, refl_t = _tangents(theta, basis, refl_basis, m)
         p, jac = model.jacobian(spd, refl, spd_t[free], refl_t[free])
         return p.reshape(-1), jac.reshape(jac.shape[0], -1).T
 
-    weights = torch.cat([torch.full((k,), prior[0] / k), torch.full((m * kr,), prior[2] / (m * kr))]).double()
-    centre = torch.cat([prior[1], torch.zeros(m * kr, dtype=torch.float64)])
-    start = torch.cat([c0, torch.zeros(m * kr, dtype=torch.float64)])
+    weights = torch.cat([c0.new_full((k,), prior[0] / k), c0.new_full((m * kr,), prior[2] / (m * kr))])
+    centre = torch.cat([prior[1], c0.new_zeros(m * kr)])
+    start = torch.cat([c0, c0.new_zeros(m * kr)])
     first = scaled_least_squares(image, image_jacobian, obs, start, weights, centre,
-                                 torch.arange(k, k + m * kr), max_steps=10, rtol=1e-4)
-    fit = scaled_least_squares(image, image_jacobian, obs, first.theta, weights, centre, torch.arange(k + m * kr),
-                               max_steps=steps, rtol=1e-6)
-    _, spd, _, refl = _decode(*split(fit.theta), basis, refl_basis)
+                                 torch.arange(k, k + m * kr, device=c0.device), max_steps=10, rtol=1e-4)
+    fit = scaled_least_squares(image, image_jacobian, obs, first.theta, weights, centre,
+                               torch.arange(k + m * kr, device=c0.device), max_steps=steps, rtol=1e-6)
+    _, spd, _, refl = _decode(fit.theta[:k], fit.theta[k:].reshape(m, kr), basis, refl_basis)
     return spd, refl, math.sqrt(fit.misfit), math.sqrt(first.misfit), first.evaluations + fit.evaluations
 
 

@@ -9,34 +9,48 @@ with ``R_m`` the spectrum of material ``m``, ``R_f`` the facets' reflectances (`
 camera's spectral weights, ``H_m`` the pixel × facet gather of the fragments of material ``m`` (dense, ``[N, F]``)
 and ``D_m`` their direct light. For a flat image (no gather) ``Z_m = H_m E`` with ``H_m`` the coverage of material
 ``m``'s facets. This is :func:`~torch_interreflect.camera.gathered_image` (or ``coverage @ camera(R E / π)``)
-regrouped by material, the same to rounding (tested).
+regrouped by material, the same to rounding (tested) for the symmetrised form factors below.
 
 :meth:`MaterialImage.jacobian` gives the derivatives of ``p`` along ``P`` directions of ``(S, R)`` at once: the
 irradiance tangents ``E_t = (I − F R)^{-1} (F (R_t ⊙ E) + g ⊗ S_t)`` share one Cholesky factor per wavelength (the
-symmetric form ``I − R^{1/2} G R^{1/2}``, ``G = A^{1/2} F A^{-1/2}``, as the dense solver), so the whole Jacobian
-costs about one factorisation and a few matrix products. Memory: ``8 L F²`` bytes for the factors (float64), ``8 P N
-3`` for the Jacobian.
+symmetric form ``I − R^{1/2} G R^{1/2}``, ``G = A^{1/2} F A^{-1/2}``), so the whole Jacobian costs about one
+factorisation and a few matrix products. For infinite bounces ``G`` is symmetrised (``A F`` averaged with its
+transpose): ``F`` must be reciprocal within :data:`~torch_interreflect.solver.plan.RECIPROCITY_RTOL`, and the model is
+that of the symmetrised ``F`` (the generator's ``F``, reciprocal to 7e-8, moves the image by 8e-10 of its largest
+pixel). Memory (float64): ``8 M N F`` bytes for the per-material gathers, ``16 L F²`` while factorising, ``8 P F L``
+for each tangent and ``8 P N 3`` for the Jacobian.
 """
 
 from __future__ import annotations
 
 import math
-from typing import Any
 
 import torch
 from torch import Tensor
 
+from ..camera.gather import Gather
 from ..camera.sensor import Camera
-from ..errors import ShapeError, SingularSystemError
+from ..errors import ShapeError, SingularSystemError, ValueRangeError
+from ..formfactors.operator import FormFactors
+from ..solver.plan import RECIPROCITY_RTOL
 
-__all__ = ["MaterialImage"]
+__all__ = ["MaterialImage", "reciprocity_error"]
+
+
+def reciprocity_error(form_factors: FormFactors) -> float:
+    """``max |A_i F_ij − A_j F_ji| / max |A F|`` (0 for an exactly reciprocal ``F``), as the solver measures it."""
+    m = form_factors.matrix
+    af = form_factors.areas.to(torch.float64)[:, None] * (m.to_dense() if m.layout != torch.strided else m).double()
+    top = float(af.abs().max())
+    return float((af - af.T).abs().max()) / top if top > 0 else 0.0
 
 
 class MaterialImage:
     """The seen pixels' camera RGB ``[N, 3]`` of a fixed geometry as a function of ``(S [L], R [M, L])``.
 
     Args:
-        form_factors: The scene's :class:`~torch_interreflect.FormFactors` (reciprocal within rounding).
+        form_factors: The scene's :class:`~torch_interreflect.FormFactors` (for infinite bounces reciprocal within
+            :data:`~torch_interreflect.solver.plan.RECIPROCITY_RTOL`).
         light_factor: ``g``, the direct light per facet. Shape ``[F]``.
         material: Material index per facet. Shape ``[F]`` int.
         camera: The :class:`~torch_interreflect.camera.Camera` of the image (its grid has ``L`` wavelengths).
@@ -52,35 +66,55 @@ class MaterialImage:
 
     Raises:
         ShapeError: sizes that do not agree.
+        ValueRangeError: ``bounces`` neither ``None`` nor an integer ≥ 1; for infinite bounces, form factors that
+            are not reciprocal within :data:`~torch_interreflect.solver.plan.RECIPROCITY_RTOL`.
+
+    Shape:
+        - light_factor, material: ``[F]``
+        - coverage: ``[N, F]``; the image: ``[N, 3]`` (``N`` seen pixels, row-major)
     """
 
-    def __init__(self, form_factors: Any, light_factor: Tensor, material: Tensor, camera: Camera,
-                 pixels: tuple[Any, Tensor] | None, seen: Tensor, coverage: Tensor | None = None,
+    def __init__(self, form_factors: FormFactors, light_factor: Tensor, material: Tensor, camera: Camera,
+                 pixels: tuple[Gather, Tensor] | None, seen: Tensor, coverage: Tensor | None = None,
                  bounces: int | None = None) -> None:
-        dt = torch.float64
+        if bounces is not None and (isinstance(bounces, bool) or not isinstance(bounces, int) or bounces < 1):
+            raise ValueRangeError(f"MaterialImage: bounces must be None (infinite) or an integer >= 1; got "
+                                  f"{bounces!r}")
+        dt, dev = torch.float64, light_factor.device
         m = form_factors.matrix
         fm = (m.to_dense() if m.layout != torch.strided else m).to(dt)
         nf = fm.shape[0]
         if light_factor.shape != (nf,) or material.shape != (nf,):
             raise ShapeError(f"light_factor and material must be [F] with F = {nf}; got "
                              f"{list(light_factor.shape)} and {list(material.shape)}")
+        if bounces is None:
+            err = reciprocity_error(form_factors)
+            if err > RECIPROCITY_RTOL:
+                raise ValueRangeError(f"MaterialImage: form factors reciprocal within {RECIPROCITY_RTOL:g} expected "
+                                      f"(A_i F_ij = A_j F_ji); got a relative violation of {err:.3g}")
         self.num_facets, self.num_materials = nf, int(material.max()) + 1
         self.fm, self.g, self.material = fm, light_factor.to(dt), material.long()
         sa = form_factors.areas.to(dt).sqrt()
         gs = sa[:, None] * fm / sa[None, :]
         self.sa, self.gs = sa, 0.5 * (gs + gs.T)  # reciprocity holds to rounding: the symmetric form
         n_wl = camera.sensitivities.shape[-1]
-        self.cmat = camera(torch.eye(n_wl, dtype=camera.sensitivities.dtype)).to(dt)  # [L, 3]: camera is linear
+        eye = torch.eye(n_wl, dtype=camera.sensitivities.dtype, device=camera.sensitivities.device)
+        self.cmat = camera(eye).to(device=dev, dtype=dt)  # [L, C]: the camera is linear
         self.gathered = pixels is not None
         onehot = torch.nn.functional.one_hot(self.material, self.num_materials).to(dt)  # [F, M]
         self.onehot = onehot
         if pixels is not None:
             op, direct = pixels
-            pf = op.pixel_fragments.to(dt).to_dense()[seen]  # [N, K]
-            own = onehot[op.fragment_facet.long()]  # [K, M]
+            pf = op.pixel_fragments.to(dt).to_sparse_coo().coalesce()  # [H·W, K], kept sparse
+            rows, cols = pf.indices()
+            keep = seen.to(rows.device)[rows]
+            new_row = torch.cumsum(seen.long(), 0).to(rows.device) - 1
+            pf = torch.sparse_coo_tensor(torch.stack([new_row[rows[keep]], cols[keep]]), pf.values()[keep],
+                                         (int(seen.sum()), pf.shape[1]), check_invariants=False).coalesce()
+            own = onehot[op.fragment_facet.long().to(dev)]  # [K, M]
             gm = op.gather.to(dt).to_dense()  # [K, F]
-            self.H = torch.stack([(pf * own[:, k]) @ gm for k in range(self.num_materials)])  # [M, N, F]
-            self.D = pf @ (own * direct.to(dt)[:, None])  # [N, M]
+            self.H = torch.stack([torch.sparse.mm(pf, own[:, k, None] * gm) for k in range(self.num_materials)])
+            self.D = torch.sparse.mm(pf, own * direct.to(dt)[:, None])  # [N, M]
             self.series = None if bounces is None else bounces - 1  # the gather adds the last bounce
         else:
             if coverage is None or coverage.shape[-1] != nf:
@@ -117,17 +151,36 @@ class MaterialImage:
         return torch.matmul(Z, rc).sum(0) / math.pi, Z
 
     def __call__(self, spd: Tensor, refl: Tensor) -> Tensor:
-        """Camera RGB of the seen pixels. ``spd [L]``, ``refl [M, L]`` → ``[N, 3]``."""
+        """Camera RGB of the seen pixels.
+
+        Args:
+            spd: The illuminant ``S`` (as ``E0 = g ⊗ S``). Shape ``[L]``.
+            refl: One reflectance per material. Shape ``[M, L]``.
+
+        Returns:
+            Shape ``[N, C]`` (``C = 3`` for an RGB camera).
+
+        Raises:
+            SingularSystemError: ``I − F R`` not positive definite (infinite bounces).
+        """
         r_f = refl[self.material]
         E, _ = self._irradiance(r_f, self.g[:, None] * spd)
         return self._pixels(refl, r_f, E, spd)[0]
 
     # ---------------------------------------------------------------------------------------------- Jacobian
     def jacobian(self, spd: Tensor, refl: Tensor, spd_t: Tensor, refl_t: Tensor) -> tuple[Tensor, Tensor]:
-        """The image and its derivatives along ``P`` directions ``(spd_t [P, L], refl_t [P, M, L])``.
+        """The image and its derivatives along ``P`` directions of ``(S, R)``.
+
+        Args:
+            spd, refl: The point, as for :meth:`__call__`.
+            spd_t: The directions' parts in ``S``. Shape ``[P, L]``.
+            refl_t: Their parts in ``R``. Shape ``[P, M, L]``.
 
         Returns:
-            ``(p [N, 3], J [P, N, 3])``.
+            ``(p, J)``: the image ``[N, C]`` and its derivatives ``[P, N, C]``.
+
+        Raises:
+            SingularSystemError: as :meth:`__call__`.
         """
         r_f = refl[self.material]
         e0 = self.g[:, None] * spd
@@ -138,13 +191,14 @@ class MaterialImage:
         E_t = self._tangent(r_f, E, e0, e0_t, r_t, fac)
         n_p, n_wl = spd_t.shape
         src = r_t * E + r_f * E_t if self.gathered else E_t  # [P, F, L]
-        J = torch.zeros(n_p, p.shape[0], 3, dtype=p.dtype)
+        nc = self.cmat.shape[1]
+        J = torch.zeros(n_p, p.shape[0], nc, dtype=p.dtype, device=p.device)
         rc = refl[:, :, None] * self.cmat  # [M, L, 3]
         for k in range(self.num_materials):
-            w = (refl_t[:, k, :, None] * self.cmat).permute(1, 0, 2).reshape(n_wl, -1)  # [L, P·3]
-            J += (Z[k] @ w).reshape(-1, n_p, 3).transpose(0, 1)  # the reflectance at the pixel
-            y = (src @ rc[k]).transpose(0, 1).reshape(src.shape[1], -1)  # [F, P·3]
-            J += (self.H[k] @ y).reshape(-1, n_p, 3).transpose(0, 1)  # the light it receives
+            w = (refl_t[:, k, :, None] * self.cmat).permute(1, 0, 2).reshape(n_wl, -1)  # [L, P·C]
+            J += (Z[k] @ w).reshape(-1, n_p, nc).transpose(0, 1)  # the reflectance at the pixel
+            y = (src @ rc[k]).transpose(0, 1).reshape(src.shape[1], -1)  # [F, P·C]
+            J += (self.H[k] @ y).reshape(-1, n_p, nc).transpose(0, 1)  # the light it receives
         if self.D is not None:
             J += torch.einsum("nm,pmc->pnc", self.D, torch.einsum("pl,mlc->pmc", spd_t, rc))
         return p, J / math.pi
@@ -157,8 +211,7 @@ class MaterialImage:
                 Et = e0_t + torch.matmul(self.fm, r_t * Ek + r_f * Et)
                 Ek = e0 + self.fm @ (r_f * Ek)
             return Et
-        low, s = fac
-        rhs = e0_t + torch.matmul(self.fm, r_t * E)  # [P, F, L]
-        u = self.sa[:, None] * rhs
+        low, s = fac  # the symmetrised model's tangent: A^{1/2} F_sym x = G A^{1/2} x
+        u = self.sa[:, None] * e0_t + torch.matmul(self.gs, self.sa[:, None] * (r_t * E))  # [P, F, L]
         w = torch.cholesky_solve((s.T * u).permute(2, 1, 0), low)  # [L, F, P]
         return (u + torch.matmul(self.gs, s.T * w.permute(2, 1, 0))) / self.sa[:, None]
