@@ -163,8 +163,9 @@ def refine_illuminant(
             the reflectance data) towards the data's mean. Measured with
             Levenberg–Marquardt on the first 100 images of the study's path-traced set (Mitsuba, 2,048 spp), each
             started 6° off its true illuminant in a random direction (``benchmarks/cc_refine.py``): median / mean
-            error 1.39° / 2.18° at ``μ = 2e-5``, 1.36° / 2.18° at ``3e-5`` (the default), 1.36° / 2.24° at ``5e-5``
-            and 1.63° / 2.83° at ``1e-4``; 2.51° / 2.79° at ``1e-5`` on the first 40. A fit that converges slides
+            error 1.39° / 2.18° at ``μ = 2e-5``, 1.36° / 2.18° at ``3e-5`` (the default; 1.34° / 2.23° after the
+            review's mends, below), 1.36° / 2.24° at ``5e-5`` and 1.63° / 2.83° at ``1e-4``; 2.51° / 2.79° at
+            ``1e-5`` on the first 40. A fit that converges slides
             along the ambiguity ``S · a ↔ R / a`` with the image's noise when the prior is too weak. Started at the
             true illuminant a weaker prior looks better (0.72° at ``1e-6`` with L-BFGS) only because a fit that stops
             early stays where it starts: judge settings from a start away from the answer.
@@ -191,12 +192,12 @@ def refine_illuminant(
             those rays, and 1.6–2.2° (mean 3.2–3.6°) with any of uniform 8 × 8 or 16 × 16 rays or edge rays 8 or 16,
             whose differences are within a 20-image median's noise; residuals 3–7 %, Mitsuba's noise mostly.
         optimizer: ``"auto"`` (Levenberg–Marquardt up to :data:`LM_MAX_FACETS` facets with reciprocal form factors,
-            else L-BFGS), ``"lm"`` or ``"lbfgs"``. On the 100 images above (2 processes, one thread each): L-BFGS
-            with its former defaults (``μ = 1e-4``, 150 iterations) 1.44° / 3.10° in 177 s; Levenberg–Marquardt at
-            ``μ = 1e-4`` 1.63° / 2.83°, the same per-kind medians within 0.04° (Cornell box 0.87° / 0.88°,
-            V-grooves 3.00° / 2.97°, W shapes 1.69° / 1.72°) with fewer local minima; at ``μ = 3e-5`` 1.36° /
-            2.18°. The Levenberg–Marquardt settings took 144–188 s (three runs). L-BFGS at ``μ = 1e-5`` with 400
-            iterations gave 1.23° / 2.68° in 2.1× its default time (an earlier run).
+            else L-BFGS), ``"lm"`` or ``"lbfgs"``. On the 100 images above, one process, side by side
+            (``benchmarks/results/cc_refine.md``): Levenberg–Marquardt with the defaults 1.34° / 2.23° in 376 s,
+            L-BFGS with its former defaults (``μ = 1e-4``, 150 iterations) 1.44° / 3.10° in 421 s. At the same
+            ``μ = 1e-4`` (another run) Levenberg–Marquardt gave 1.63° / 2.83°, per-kind medians within 0.04° of
+            L-BFGS's (Cornell box 0.88°, V-grooves 2.97°, W shapes 1.72°) with fewer local minima. L-BFGS at
+            ``μ = 1e-5`` with 400 iterations gave 1.23° / 2.68° in 2.1× its default time (an earlier session).
 
     Returns:
         A :class:`RefinedIlluminant`.
