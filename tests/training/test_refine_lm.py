@@ -142,8 +142,10 @@ def test_least_squares_reaches_an_exact_fit_up_to_the_scale() -> None:
     p = model(th)
     f = (((p @ obs) / (p @ p)) * p - obs).pow(2).sum() + (weights * (th - centre).pow(2)).sum()
     (grad,) = torch.autograd.grad(f, th)
-    # measured: 2.6e-12, against 17.6 at the start and 0.048 with the prior's weights doubled in the fit
-    assert float(grad.abs().max()) < 2.6e-11 and abs(mid.loss - float(f.detach())) < 1e-14
+    # LM stops where no step lowers f in floating point: the gradient then sits at the rounding floor, about
+    # sqrt(eps f h) ~ 1e-8 here, and where in it depends on the CPU's arithmetic. Measured 6.3e-10 (AMD EPYC) and
+    # 2.6e-12 (an earlier machine), against 17.6 at the start and 0.048 with the prior's weights doubled in the fit
+    assert float(grad.abs().max()) < 6.3e-9 and abs(mid.loss - float(f.detach())) < 1e-14
 
 def test_levenberg_marquardt_fits_at_least_as_well_as_lbfgs(sample: dict) -> None:
     est = {"camera": sample["cfg"].camera, "wavelengths": sample["cfg"].wavelengths}
