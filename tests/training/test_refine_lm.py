@@ -166,6 +166,9 @@ def test_refine_checks_its_options(sample: dict) -> None:
         refine_illuminant(est, sample["image"], sample["geo"], sample["truth"], optimizer="adam")
     with pytest.raises(ValueRangeError, match="steps must be an integer"):
         refine_illuminant(est, sample["image"], sample["geo"], sample["truth"], steps=0)
+    for bad in (1.0, -1e-4, float("nan")):
+        with pytest.raises(ValueRangeError, match=r"stop_rtol must be a number in \[0, 1\)"):
+            refine_illuminant(est, sample["image"], sample["geo"], sample["truth"], stop_rtol=bad)
 
 
 def test_levenberg_marquardt_is_the_same_on_two_threads(sample: dict) -> None:
