@@ -47,7 +47,7 @@ import numpy as np
 import torch
 
 from benchmarks._common.mitsuba import available as mitsuba_available
-from benchmarks.cc_pathtraced import SPP, render_test_set
+from benchmarks.cc_pathtraced import OUTSIDE_FAMILIES, SPP, render_test_set
 from torch_interreflect import spectral
 from torch_interreflect.training import (
     BASELINES,
@@ -224,7 +224,8 @@ def study(args: argparse.Namespace, out: Path) -> str:
             ex.shutdown()
     seconds["total"] = time.perf_counter() - t_all
     kinds = {name: scene_kinds(test) for name, test in sets.items()}
-    return _report(args, errors, seconds, {k: len(v) for k, v in sets.items()}, out, kinds)
+    groups = {name: outside_groups(test) for name, test in sets.items()}
+    return _report(args, errors, seconds, {k: len(v) for k, v in sets.items()}, out, kinds, groups)
 
 
 def report(path: Path, out: Path) -> str:
@@ -233,13 +234,15 @@ def report(path: Path, out: Path) -> str:
     saved = json.loads(path.read_text())
     args = argparse.Namespace(**saved["args"])
     errors = {n: {m: [np.array(x) for x in v] for m, v in e.items()} for n, e in saved["errors"].items()}
-    kinds = saved.get("scene_kinds") or {}
+    kinds, groups = saved.get("scene_kinds") or {}, saved.get("outside_groups") or {}
     for name in errors:
-        if name not in kinds:
+        if name not in kinds or name not in groups:
             test = _held_out(args, TrainConfig().test_fraction) if name.startswith("held-out") else None
-            kinds[name] = scene_kinds(test if test is not None else _pathtraced_set(args))
+            test = test if test is not None else _pathtraced_set(args)
+            kinds.setdefault(name, scene_kinds(test))
+            groups.setdefault(name, outside_groups(test))
     sizes = {name: len(kinds[name]) for name in errors}
-    return _report(args, errors, saved["seconds"], sizes, out, kinds)
+    return _report(args, errors, saved["seconds"], sizes, out, kinds, groups)
 
 
 def _tables(errors: dict[str, list[np.ndarray]]) -> str:
@@ -280,32 +283,53 @@ def scene_kinds(test: GeneratedDataset) -> list[str]:
     return [json.loads((test.root / f"{i:06d}.json").read_text())["scene"]["kind"] for i in test.indices]
 
 
-def _by_kind(errors: dict[str, list[np.ndarray]], kinds: list[str]) -> str:
-    """Median errors per scene kind (images averaged over the seeds) of :data:`KIND_METHODS`."""
+def outside_groups(test: GeneratedDataset) -> list[list[str]]:
+    """Per image of ``test``, from its sidecar: whether its illuminant and its reflectances come from inside the
+    training families (``"illuminant inside"`` / ``"illuminant outside"``, ``"reflectances all inside"`` / ``"a
+    reflectance outside"``; :mod:`benchmarks.cc_pathtraced` draws the outside ones)."""
+    out = []
+    for i in test.indices:
+        meta = json.loads((test.root / f"{i:06d}.json").read_text())
+        kind = meta["illuminant"].get("kind", "")
+        ill = kind.endswith("(outside)") or kind in OUTSIDE_FAMILIES
+        refl = any("(outside)" in m.get("source", "") for m in meta["materials"])
+        out.append(["illuminant " + ("outside" if ill else "inside"),
+                    "a reflectance outside" if refl else "reflectances all inside"])
+    return out
+
+
+def _by_kind(errors: dict[str, list[np.ndarray]], kinds: list[str] | list[list[str]],
+             what: str = "scene kind") -> str:
+    """Median errors per scene kind, or per group (an image may be in several), of :data:`KIND_METHODS` (images
+    averaged over the seeds)."""
     methods = [m for m in KIND_METHODS if m in errors]
-    lines = ["| scene kind | images | " + " | ".join(methods) + " |", "|---|---:|" + "---:|" * len(methods)]
-    kind = np.array(kinds)
-    for k in sorted(set(kinds)):
-        sel = kind == k
+    lines = [f"| {what} | images | " + " | ".join(methods) + " |", "|---|---:|" + "---:|" * len(methods)]
+    groups = [k if isinstance(k, list) else [k] for k in kinds]
+    for k in sorted({g for gs in groups for g in gs}):
+        sel = np.array([k in gs for gs in groups])
         meds = [float(np.median(np.mean(np.stack(errors[m]), 0)[sel])) for m in methods]
         lines.append(f"| {k} | {int(sel.sum())} | " + " | ".join(f"{v:.2f}" for v in meds) + " |")
-    return ("\nMedian errors (°) per scene kind, each image's error averaged over the seeds first:\n\n"
+    return (f"\nMedian errors (°) per {what}, each image's error averaged over the seeds first:\n\n"
             + "\n".join(lines) + "\n")
 
 
 def _report(args: argparse.Namespace, errors: dict[str, dict[str, list[np.ndarray]]], seconds: dict[str, float],
-            sizes: dict[str, int], out: Path, kinds: dict[str, list[str]] | None = None) -> str:
+            sizes: dict[str, int], out: Path, kinds: dict[str, list[str]] | None = None,
+            groups: dict[str, list[list[str]]] | None = None) -> str:
     header = (f"Study: {args.count} samples at {args.size}×{args.size} (seed-0 data), {args.seeds} training seeds, "
               f"epochs {args.epochs} / physics {args.physics_epochs}, width {args.width}; total "
               f"{seconds['total'] / 60:.1f} min.\n")
-    kinds = kinds or {}
+    kinds, groups = kinds or {}, groups or {}
+    mixed = {n for n, g in groups.items() if len({tuple(x) for x in g}) > 1}  # the held-out set is all inside
     body = "".join(f"\n## Test set: {name}, {sizes[name]} images\n\n" + _tables(e)
-                   + (_by_kind(e, kinds[name]) if name in kinds else "") for name, e in errors.items())
+                   + (_by_kind(e, kinds[name]) if name in kinds else "")
+                   + (_by_kind(e, groups[name], "training family") if name in mixed else "")
+                   for name, e in errors.items())
     text = header + body + "\nSeconds: " + ", ".join(f"{k} {v:.0f}" for k, v in seconds.items()) + "\n"
     stem = f"colour_constancy_study_{args.count}_{args.size}" + (f"_pt{args.pathtraced}" if args.pathtraced else "")
     (out / f"{stem}.md").write_text(text)
     dump = {"errors": {n: {m: [x.tolist() for x in v] for m, v in e.items()} for n, e in errors.items()},
-            "seconds": seconds, "args": vars(args), "scene_kinds": kinds}
+            "seconds": seconds, "args": vars(args), "scene_kinds": kinds, "outside_groups": groups}
     (out / f"{stem}.json").write_text(json.dumps(dump, indent=1) + "\n")
     return text
 

@@ -146,7 +146,7 @@ def refine_illuminant(
     reflectance_components: int = 30,
     steps: int | None = None,
     tol: float = 1e-4,
-    stop_rtol: float = 1e-4,
+    stop_rtol: float = 1e-7,
     edge_supersample: int | None = None,
     optimizer: str = "auto",
 ) -> RefinedIlluminant:
@@ -181,16 +181,13 @@ def refine_illuminant(
             for the reflectances alone at the starting illuminant) or L-BFGS iterations (``None``: 150; before them,
             ``max(10, steps // 3)`` for the reflectances alone). Levenberg–Marquardt stops earlier (below).
         stop_rtol: Levenberg–Marquardt's joint fit stops when a step lowers the loss by less than this fraction of
-            it (the reflectances' fit before it at 1e-4). On the 100 images above, one run side by side: median /
-            mean 1.35° / 2.24° at ``1e-4`` (the default) in 47 s, 1.35° / 2.26° at ``1e-6`` in 61 s, 1.35° / 2.24° at
-            ``3e-5`` in 53 s; on the library's noise-free render of them 0.79° / 1.74° at both ``1e-4`` (66 s) and
-            ``1e-6`` (70 s). An earlier version stopped at ``1e-6``; ``1e-3`` stops too early (2.94° / 3.08° on the
-            first 60, an earlier run).
-        tol: Relative error of L-BFGS's solves (forward and adjoint; Levenberg–Marquardt factorises exactly and
-            solves once at the end with ``tol`` for the solver's checks, e.g. the form factors' closure). ``1e-4``
-            is far below what an image's noise and the model's mismatch leave (residuals of 1–7 %): with L-BFGS from
-            the true illuminant on 40 of the study's path-traced images (Mitsuba, 256 spp), the median error was
-            2.34° with ``1e-4`` and 2.34° with ``1e-6`` (means 3.91° and 4.22°), in 0.69× the time.
+            it (the reflectances' fit before it at 1e-4). Measured in the study's setting (``make bench-cc``: its 200
+            path-traced images started from its seed-0 physics-informed network, about 8° off, ``python -m
+            benchmarks.cc_refine --count 200 --start-model out/cc-study/study-seed0/physics.pt``; 2 processes, runs
+            of two settings each), median / mean and seconds: ``1e-4`` 1.40° / 3.09° in 64 s, ``1e-5`` 1.34° / 2.84°
+            in 76 s, ``1e-6`` 1.34° / 2.70° in 88 s, ``1e-7`` (the default) 1.34° / 2.66° in 99 s, ``1e-8`` 1.34° /
+            2.66° in 127 s. Started 6° off (the 100 images above, another run) ``1e-4`` and ``1e-6`` both ended at
+            1.35° / 2.24–2.26°: far starts need the longer fit.
         edge_supersample: For a gathered sample: ``e`` for ``e²`` rays in the edge pixels of the model's image
             (:func:`gathered_model`; ``None``: the sample's own). The model should resolve the image's pixel
             integral. Started from the true illuminant on 20 of the study's path-traced images (Mitsuba, 256 spp)
