@@ -186,8 +186,9 @@ def refine_illuminant(
             benchmarks.cc_refine --count 200 --start-model out/cc-study/study-seed0/physics.pt``; 2 processes, runs
             of two settings each), median / mean and seconds: ``1e-4`` 1.40° / 3.09° in 64 s, ``1e-5`` 1.34° / 2.84°
             in 76 s, ``1e-6`` 1.34° / 2.70° in 88 s, ``1e-7`` (the default) 1.34° / 2.66° in 99 s, ``1e-8`` 1.34° /
-            2.66° in 127 s. Started 6° off (the 100 images above, another run) ``1e-4`` and ``1e-6`` both ended at
-            1.35° / 2.24–2.26°: far starts need the longer fit.
+            2.66° in 127 s (again in the run of ``benchmarks/results/cc_refine_network.md``: the same errors).
+            Started 6° off (the 100 images above, ``benchmarks/results/cc_refine.md``) a near start gains nothing from
+            the longer fit: 1.36° / 2.29° at ``1e-7`` in 71 s, 1.35° / 2.24° at ``1e-4`` in 43 s.
         edge_supersample: For a gathered sample: ``e`` for ``e²`` rays in the edge pixels of the model's image
             (:func:`gathered_model`; ``None``: the sample's own). The model should resolve the image's pixel
             integral. Started from the true illuminant on 20 of the study's path-traced images (Mitsuba, 256 spp)
@@ -195,12 +196,15 @@ def refine_illuminant(
             those rays, and 1.6–2.2° (mean 3.2–3.6°) with any of uniform 8 × 8 or 16 × 16 rays or edge rays 8 or 16,
             whose differences are within a 20-image median's noise; residuals 3–7 %, Mitsuba's noise mostly.
         optimizer: ``"auto"`` (Levenberg–Marquardt up to :data:`LM_MAX_FACETS` facets with reciprocal form factors,
-            else L-BFGS), ``"lm"`` or ``"lbfgs"``. On the 100 images above, one process, side by side
-            (``benchmarks/results/cc_refine.md``): Levenberg–Marquardt with the defaults 1.34° / 2.23° in 376 s,
-            L-BFGS with its former defaults (``μ = 1e-4``, 150 iterations) 1.44° / 3.10° in 421 s. At the same
-            ``μ = 1e-4`` (another run) Levenberg–Marquardt gave 1.63° / 2.83°, per-kind medians within 0.04° of
-            L-BFGS's (Cornell box 0.88°, V-grooves 2.97°, W shapes 1.72°) with fewer local minima. L-BFGS at
-            ``μ = 1e-5`` with 400 iterations gave 1.23° / 2.68° in 2.1× its default time (an earlier session).
+            else L-BFGS), ``"lm"`` or ``"lbfgs"``. On the 100 images above, 2 processes, side by side
+            (``benchmarks/results/cc_refine.md``): Levenberg–Marquardt with the defaults 1.36° / 2.29° in 71 s,
+            L-BFGS with its former defaults (``μ = 1e-4``, 150 iterations) 1.64° / 3.11° in 71 s; on the library's
+            noise-free render of them (``cc_refine_library.md``) 0.79° / 1.74° against 1.18° / 2.95°, 76 s and 77 s.
+            (An earlier machine and render of the set, one process: 1.34° / 2.23° in 376 s against 1.44° / 3.10° in
+            421 s.) At the same ``μ = 1e-4`` (another run) Levenberg–Marquardt gave 1.63° / 2.83°, per-kind medians
+            within 0.04° of L-BFGS's (Cornell box 0.88°, V-grooves 2.97°, W shapes 1.72°) with fewer local minima.
+            L-BFGS at ``μ = 1e-5`` with 400 iterations gave 1.23° / 2.68° in 2.1× its default time (an earlier
+            session).
 
     Returns:
         A :class:`RefinedIlluminant`.
