@@ -230,17 +230,23 @@ def study(args: argparse.Namespace, out: Path) -> str:
 
 def report(path: Path, out: Path) -> str:
     """Rewrite a study's ``.md`` (and ``.json``) from its ``.json`` (e.g. after the report gained a table): the same
-    errors and seconds; the scene kinds read from the data folders when the file has none."""
+    errors and seconds; the scene kinds and training-family groups read from the data folders when the file has none
+    (without those folders, a file with scene kinds is rewritten without the groups)."""
     saved = json.loads(path.read_text())
     args = argparse.Namespace(**saved["args"])
     errors = {n: {m: [np.array(x) for x in v] for m, v in e.items()} for n, e in saved["errors"].items()}
     kinds, groups = saved.get("scene_kinds") or {}, saved.get("outside_groups") or {}
     for name in errors:
-        if name not in kinds or name not in groups:
-            test = _held_out(args, TrainConfig().test_fraction) if name.startswith("held-out") else None
-            test = test if test is not None else _pathtraced_set(args)
+        if name in kinds and name in groups:
+            continue
+        try:
+            test = (_held_out(args, TrainConfig().test_fraction) if name.startswith("held-out")
+                    else _pathtraced_set(args))
             kinds.setdefault(name, scene_kinds(test))
             groups.setdefault(name, outside_groups(test))
+        except OSError:  # the data folders are gone: the training-family table needs them, the rest does not
+            if name not in kinds:
+                raise
     sizes = {name: len(kinds[name]) for name in errors}
     return _report(args, errors, saved["seconds"], sizes, out, kinds, groups)
 

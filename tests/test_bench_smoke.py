@@ -242,7 +242,7 @@ def test_pathtraced_test_set_refuses_a_folder_of_another_configuration(tmp_path:
             pt.render_test_set(tmp_path, 1, 32, progress=False)
 
 
-def test_study_report_is_rewritten_from_its_json_with_medians_per_scene_kind(tmp_path: Path) -> None:
+def test_study_report_is_rewritten_from_its_json_with_medians_per_scene_kind_and_family(tmp_path: Path) -> None:
     from benchmarks import colour_constancy as cc
 
     fc4 = [[1.0, 2.0, 9.0, 3.0], [3.0, 4.0, 7.0, 5.0]]  # two seeds: per-image means 2, 3, 8, 4
@@ -258,6 +258,14 @@ def test_study_report_is_rewritten_from_its_json_with_medians_per_scene_kind(tmp
     assert "## Test set: path-traced (Mitsuba), 4 images" in text and "total 1.0 min" in text
     again = json.loads((tmp_path / "colour_constancy_study_10_8_pt4.json").read_text())
     assert again["errors"] == saved["errors"] and again["scene_kinds"] == saved["scene_kinds"]
+    assert "per training family" not in text  # no groups in the file and no data folders to read them from
+    saved["outside_groups"] = {"path-traced (Mitsuba)": [
+        ["illuminant inside", "reflectances all inside"], ["illuminant outside", "a reflectance outside"],
+        ["illuminant outside", "reflectances all inside"], ["illuminant inside", "a reflectance outside"]]}
+    (tmp_path / "s.json").write_text(json.dumps(saved))
+    text = cc.report(tmp_path / "s.json", tmp_path)
+    assert "| illuminant inside | 2 | 3.00 | 0.38 |" in text  # images 0 and 3: medians of 2, 4 and of 0.5, 0.25
+    assert "| illuminant outside | 2 | 5.50 | 0.75 |" in text and "| a reflectance outside | 2 | 3.50 | 0.38 |" in text
 
 
 def test_accuracy_benchmark_counts_silent_misses_on_sky_lit_scenes() -> None:
