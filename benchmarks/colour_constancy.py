@@ -242,8 +242,10 @@ def report(path: Path, out: Path) -> str:
         try:
             test = (_held_out(args, TrainConfig().test_fraction) if name.startswith("held-out")
                     else _pathtraced_set(args))
-            kinds.setdefault(name, scene_kinds(test))
-            groups.setdefault(name, outside_groups(test))
+            if name not in kinds:
+                kinds[name] = scene_kinds(test)
+            if name not in groups:
+                groups[name] = outside_groups(test)
         except OSError:  # the data folders are gone: the training-family table needs them, the rest does not
             if name not in kinds:
                 raise
