@@ -38,6 +38,13 @@ again at the new counts. (Before the replicas, the check with other rays and 1.5
 away after it measured; on the Cornell box under a sky at 5e-3 the planner took 89 s at r = 0.9 and 30 s at
 r = 0.2, against 18 s and 18 s with the replicas, for errors from Mitsuba of 0.16 % / 0.30 % against
 0.15 % / 0.22 %.)
+
+Where the light is smooth, the first level that meets the discretisation's share also measures the ray-cast parts
+(one replica each at the first counts). If they do not fit in what the share leaves of the request, the share is
+lowered to what they leave (:data:`RAY_FIRST_SHARE` at least) and refinement goes on instead of the rays growing:
+splitting the few leaves that carry a smooth error costs less than more rays on every occluded pair (the W shape
+under a sun at 1e-3: 0.52 s against 0.92 s). Where the lowered share cannot be reached (the leaf or step caps),
+the rays grow as before; where the share is not lowered, the replicas serve the ray-cast parts' first measure.
 """
 
 from __future__ import annotations
@@ -59,13 +66,24 @@ from ..light_moments import SkyRays, light_is_rough, light_moments, sky_rays
 from ..lights import sun_direction
 from ..solver.moments import solve_moments
 from .leaves import Leaves, relative_change, rms, select, split, to_user
+from .ray_counts import (
+    MAX_SKY_SAMPLES,
+    MAX_VISIBILITY_SAMPLES,
+    RAY_MARGIN,
+    SKY_SAMPLES,
+    VISIBILITY_SAMPLES,
+    grown,
+    more_samples,
+    sky_cost,
+    sky_points,
+    visibility_cost,
+)
 from .refine import Problem
 from .report import AccuracyReport
 
-__all__ = ["DEGREE", "HALVING_SHARE", "Q_EST", "Q_HALVING", "Q_LINEAR", "REPLICA_MARGIN", "MomentRefinement",
-           "kernel_part", "leaf_light", "moment_quadrature_tol", "moment_report", "polynomial_allowed",
-           "refine_moments", "sky_cost", "sky_points", "smooth_light", "solver_part", "solver_tolerance",
-           "visibility_cost"]
+__all__ = ["DEGREE", "HALVING_SHARE", "Q_EST", "Q_HALVING", "Q_LINEAR", "RAY_FIRST_SHARE", "REPLICA_MARGIN",
+           "MomentRefinement", "kernel_part", "leaf_light", "moment_quadrature_tol", "moment_report",
+           "polynomial_allowed", "refine_moments", "smooth_light", "solver_part", "solver_tolerance"]
 
 #: Degree of the basis the planner solves on.
 DEGREE = 2
@@ -92,37 +110,20 @@ Q_HALVING = 1.0
 #: 27 s and 114 s, both short of the request, with the 0.9 of smooth scenes; measured with ``Q_HALVING = 0.6``).
 HALVING_SHARE = 0.7
 
-#: Directions per axis of the sky's ray-cast part at first, from half as many points per axis on each leaf
-#: (:func:`sky_points`). Points and directions grow together: on the Cornell box's 50 pieces (independent replicas,
-#: RMS per piece) 8 points × 16 directions gave 1.42 %, 16 × 32 0.41 % against 0.69 % for 8 × 64 (the same rays:
-#: the points set a floor when only the directions grow). Odd counts did worse (11 × 11: 2.7 %; 12 × 12: 1.1 %).
-SKY_SAMPLES = 16
-
-#: Most directions per axis of the sky's ray-cast part (16 points per axis then: 16² × 32² ≈ 262,000 rays per leaf,
-#: the 8² × 64² of the directions-only growth this replaced).
-MAX_SKY_SAMPLES = 32
-
-#: Margin on the sample counts chosen from the measured ray-cast parts (each falls as one over its count per axis).
-RAY_MARGIN = 1.2
+#: Least share of the request that the discretisation is held to when the ray-cast parts, measured at their first
+#: counts on a level that met the discretisation's share, do not fit beside it (smooth light only, not ``halving``):
+#: the share is lowered to what they leave (with :data:`RAY_MARGIN`) and refinement goes on, rather than the rays
+#: growing, as long as that leaves at least this. Refining the few leaves that carry a smooth error is cheaper than
+#: more rays on every occluded pair: the W shape under a sun (r = 0.9) at 1e-3 took 1.0 s growing the rays from 3 to
+#: 12 per side, and 0.3–0.4 s with the share lowered to 0.5 or 0.35 of the request instead (0.047 % against
+#: 0.059 % / 0.053 % from Mitsuba, all within the estimate).
+RAY_FIRST_SHARE = 0.3
 
 #: A ray-cast part is the change of the output that its replica makes, divided by this. Half the change is the RMS
 #: error of the mean of the two replicas; one pair of replicas measures it noisily (the sky's part on the Cornell
 #: box, 12 pairs: 0.4–2.5 times the error, pooled 0.85–0.97), and √2 keeps the margin that the single check before
 #: the replicas had (its change was √2 times the error of the answer it checked).
 REPLICA_MARGIN = math.sqrt(2.0)
-
-#: Visibility rays per side of the target from each outer point of an occluded pair, at first and at most: while
-#: the measured ray-cast parts keep the total above the request, the rays and the sky's directions grow, each by the
-#: factor that brings its part down at the least cost (:func:`_more_samples`).
-VISIBILITY_SAMPLES, MAX_VISIBILITY_SAMPLES = 3, 12
-
-#: Modelled seconds of a visibility replica per occluded pair (its outer points; the exact sums are kept) and per
-#: ray, and of the sky's replica per ray: the growth of the ray counts weighs the two parts by these, not by timing
-#: them, so that a render is the same from run to run. Fitted on one thread to the replicas (their solve included) of
-#: the Cornell box (r = 0.9 and 0.2, 200–380 leaves, 3,734–18,300 occluded pairs, 0.65–6.5 M visibility and
-#: 2.9–34 M sky rays) and the W shape (162 leaves, 1,984 pairs, 0.16–2.6 M rays): the model is within 15 % of each
-#: measured time (0.06–4.8 s). Only their ratios matter.
-VISIBILITY_PAIR_SECONDS, VISIBILITY_RAY_SECONDS, SKY_RAY_SECONDS = 1e-5, 1.9e-7, 1.5e-7
 
 
 @dataclass
@@ -263,6 +264,7 @@ def refine_moments(pb: Problem, *, max_unknowns: int, max_iterations: int, show:
     if halving:
         share = pb.accuracy * HALVING_SHARE
     share = min(share, pb.accuracy - kernel_part(pb) - solver_part(pb))
+    met = share  # the share as first set: a lowered one that cannot be reached falls back to more rays
     max_leaves = max(pieces.num_facets, max_unknowns // 6)
     history: list[dict[str, float]] = []
     reason = ""
@@ -272,6 +274,7 @@ def refine_moments(pb: Problem, *, max_unknowns: int, max_iterations: int, show:
     est = torch.full((pb.F,), math.inf, dtype=torch.float64)
     lv = _level(pb, leaves, share, degree=DEGREE) if halving else None
     previous: MomentFormFactors | None = None
+    first: _Replicas | None = None  # the ray-cast parts at their first counts, measured once (smooth light)
     while True:
         if lv is None or not halving:
             lv = _level(pb, leaves, share, previous=previous)
@@ -280,14 +283,21 @@ def refine_moments(pb: Problem, *, max_unknowns: int, max_iterations: int, show:
         history.append({"leaves": float(leaves.scene.num_facets), "estimated": disc,
                         "seconds": time.perf_counter() - t_start})
         bar.update(1)
+        if disc <= share and not halving and first is None and _occluded(lv):
+            first = _replicas(pb, leaves, lv, share, VISIBILITY_SAMPLES, SKY_SAMPLES)
+            room = pb.accuracy - kernel_part(pb) - solver_part(pb) - RAY_MARGIN * rms(first.parts[0] + first.parts[1])
+            if disc > room >= RAY_FIRST_SHARE * pb.accuracy:  # the rays would have to grow: refine instead
+                share = room
+                history[-1]["share"] = share
         if disc <= share:
             break
         if it >= max_iterations:
-            reason = f"max_iterations ({max_iterations})"
+            reason = "" if disc <= met else f"max_iterations ({max_iterations})"
             break
         sel = select(leaves, est, share, max_leaves)
         if sel is None:
-            reason = f"max_facets ({max_unknowns} unknowns: {max_leaves} leaves of 6 basis functions)"
+            reason = "" if disc <= met else (
+                f"max_facets ({max_unknowns} unknowns: {max_leaves} leaves of 6 basis functions)")
             break
         touched = torch.zeros(pb.F, dtype=torch.bool)
         touched[leaves.user[sel].cpu()] = True
@@ -300,46 +310,76 @@ def refine_moments(pb: Problem, *, max_unknowns: int, max_iterations: int, show:
             change = Q_HALVING * relative_change(lv.x, before).cpu()  # F values: kept on the CPU
             est = torch.where(touched, change, torch.maximum(est, change))  # a neighbour's split moves it too
     bar.close()
-    lv, ray, est = _ray_parts(pb, leaves, lv, est, share, halving, history, t_start)
+    if first is not None and first.leaves != leaves.scene.num_facets:
+        first = None  # measured on a level since refined
+    lv, ray, est = _ray_parts(pb, leaves, lv, est, share, halving, history, t_start, first)
     return MomentRefinement(leaves, lv.K, lv.g, est.cpu(), ray.cpu(), it, reason, history,
                             None if halving else lv.rough)
 
 
+def _occluded(lv: _Level) -> bool:
+    return bool(lv.full.info["occluded_facets"].any())
+
+
+@dataclass
+class _Replicas:
+    """Replicas of the ray-cast parts on one level (``leaves`` of them): the visibility's moments ``K`` and the
+    sky's rays ``sky`` drawn with another seed, the parts they measure per user facet (visibility, sky) and their
+    modelled costs."""
+
+    leaves: int
+    K: MomentFormFactors
+    sky: SkyRays | None
+    parts: list[Tensor]
+    cost: list[float]
+
+
+def _replicas(pb: Problem, leaves: Leaves, lv: _Level, share: float, vis: int, sky: int, seed: int = 1) -> _Replicas:
+    """The visibility's rays (``vis`` per side) and the sky's (``sky`` directions per axis) drawn again with ``seed``
+    on ``lv``; each part is the change of the output that its replica makes, over :data:`REPLICA_MARGIN`."""
+    zero = torch.zeros(pb.F, dtype=torch.float64)
+    parts, cost = [zero, zero.clone()], [0.0, 0.0]
+    K_b = resample_visibility(lv.full, seed=seed, visibility_samples=vis)
+    x_b = _level(pb, leaves, share, degree=lv.degree, moments=K_b, sky=lv.sky).x
+    cost[0] = visibility_cost(K_b)
+    parts[0] = relative_change(x_b, lv.x).cpu() / REPLICA_MARGIN
+    sky_b = None
+    if lv.sky is not None and (lv.sky.escape_ids.numel() or lv.sky.back_ids.numel()):
+        sky_b = sky_rays(leaves.scene, lv.full, samples=sky, points=sky_points(sky), seed=seed)
+        x_b = _level(pb, leaves, share, degree=lv.degree, moments=lv.full, sky=sky_b).x
+        cost[1] = sky_cost(sky_b, sky)
+        parts[1] = relative_change(x_b, lv.x).cpu() / REPLICA_MARGIN
+    return _Replicas(leaves.scene.num_facets, K_b, sky_b, parts, cost)
+
+
 def _ray_parts(pb: Problem, leaves: Leaves, lv: _Level, est: Tensor, share: float, halving: bool,
-               history: list[dict[str, float]], t_start: float) -> tuple[_Level, Tensor, Tensor]:
+               history: list[dict[str, float]], t_start: float,
+               first: _Replicas | None = None) -> tuple[_Level, Tensor, Tensor]:
     """The ray-cast parts at the last level, measured apart by replicas: the visibility's rays, and the sky's points
     and directions, drawn again at the same counts with other seeds; the result is the mean of both replicas. A
     part is the change its replica makes over √2 (:data:`REPLICA_MARGIN`). While they keep the total above the
-    request, each count grows (:func:`_more_samples`) and the replicas are drawn again. Returns the level of the
-    mean, the ray-cast part per user facet ``[F]`` and the discretisation estimate ``est [F]`` (that of the last
-    level solved unless ``halving``); appends each growth to ``history``."""
+    request, each count grows (:func:`~.ray_counts.more_samples`) and the replicas are drawn again. Returns the level
+    of the mean, the ray-cast part per user facet ``[F]`` and the discretisation estimate ``est [F]`` (that of the last
+    level solved unless ``halving``); appends each growth to ``history``. ``first``: the replicas at the first counts
+    already drawn on this level."""
     ray = torch.zeros(pb.F, dtype=torch.float64)
     vis, sky = VISIBILITY_SAMPLES, SKY_SAMPLES
     replica = 0
-    while bool(lv.full.info["occluded_facets"].any()):
+    while _occluded(lv):
         replica += 1
-        parts, cost = [torch.zeros_like(ray), torch.zeros_like(ray)], [0.0, 0.0]
-        K_b = resample_visibility(lv.full, seed=replica, visibility_samples=vis)
-        x_b = _level(pb, leaves, share, degree=lv.degree, moments=K_b, sky=lv.sky).x
-        cost[0] = visibility_cost(K_b)
-        parts[0] = relative_change(x_b, lv.x).cpu() / REPLICA_MARGIN
-        sky_b = None
-        if lv.sky is not None and (lv.sky.escape_ids.numel() or lv.sky.back_ids.numel()):
-            sky_b = sky_rays(leaves.scene, lv.full, samples=sky, points=sky_points(sky), seed=replica)
-            x_b = _level(pb, leaves, share, degree=lv.degree, moments=lv.full, sky=sky_b).x
-            cost[1] = sky_cost(sky_b, sky)
-            parts[1] = relative_change(x_b, lv.x).cpu() / REPLICA_MARGIN
+        rep = first if replica == 1 and first is not None else _replicas(pb, leaves, lv, share, vis, sky, replica)
+        parts, cost, K_b, sky_b = rep.parts, rep.cost, rep.K, rep.sky
         ray = parts[0] + parts[1]
         left = pb.accuracy - rms(est) - kernel_part(pb) - solver_part(pb)
         # done when the parts fit; nothing to gain when every count is at its most, or when the discretisation
         # alone is above the request
         done = rms(ray) <= left or (vis >= MAX_VISIBILITY_SAMPLES and sky >= MAX_SKY_SAMPLES) or left <= 0
         if not done:
-            more_vis, more_sky = _more_samples(rms(parts[0]), rms(parts[1]), cost[0], cost[1], left / RAY_MARGIN)
-            new_vis = _grown(vis, more_vis, MAX_VISIBILITY_SAMPLES)
+            more_vis, more_sky = more_samples(rms(parts[0]), rms(parts[1]), cost[0], cost[1], left / RAY_MARGIN)
+            new_vis = grown(vis, more_vis, MAX_VISIBILITY_SAMPLES)
             # the sky's part falls as one over its rays per axis (points × directions): each count per axis grows by
             # the square root (kept even)
-            new_sky = _grown(sky, math.sqrt(more_sky), MAX_SKY_SAMPLES)
+            new_sky = grown(sky, math.sqrt(more_sky), MAX_SKY_SAMPLES)
             new_sky += new_sky % 2
             done = (new_vis, new_sky) == (vis, sky)
         if done:
@@ -356,48 +396,6 @@ def _ray_parts(pb: Problem, leaves: Leaves, lv: _Level, est: Tensor, share: floa
                         "seconds": time.perf_counter() - t_start, "visibility_samples": float(vis),
                         "sky_samples": float(sky)})
     return lv, ray, est
-
-
-def visibility_cost(moments: MomentFormFactors) -> float:
-    """Modelled seconds of a visibility replica (``moments`` the resampled form factors: their
-    ``info["occluded_pairs"]`` and ``info["rays"]``). A count of work, the same on every run
-    (:data:`VISIBILITY_PAIR_SECONDS`)."""
-    info = moments.info
-    return VISIBILITY_PAIR_SECONDS * int(info["occluded_pairs"]) + VISIBILITY_RAY_SECONDS * int(info["rays"])
-
-
-def sky_cost(sky: SkyRays, samples: int) -> float:
-    """Modelled seconds of the sky's replica ``sky`` cast at ``samples`` directions per axis (and :func:`sky_points`
-    points per axis) on each of its leaves (:data:`SKY_RAY_SECONDS`)."""
-    leaves = sky.escape_ids.numel() + sky.back_ids.numel()
-    return SKY_RAY_SECONDS * leaves * samples**2 * sky_points(samples) ** 2
-
-
-def sky_points(samples: int) -> int:
-    """Points per axis on each leaf for ``samples`` sky directions per axis (:data:`SKY_SAMPLES`)."""
-    return max(1, samples // 2)
-
-
-def _more_samples(vis_part: float, sky_part: float, vis_cost: float, sky_cost: float,
-                  left: float) -> tuple[float, float]:
-    """Factors on the visibility rays per side and on the sky's rays per point and axis (its points per axis times
-    its directions per axis) that bring the two measured ray-cast parts (each falling as one over its factor) within
-    ``left`` at the least cost (each cost growing as its factor squared): ``f ∝ (part / cost)^(1/3)``, neither below
-    1; infinite where one part alone exceeds ``left`` (``left > 0``)."""
-    a = (vis_part / max(vis_cost, 1e-9)) ** (1 / 3)
-    b = (sky_part / max(sky_cost, 1e-9)) ** (1 / 3)
-    c = ((vis_part / a if a > 0 else 0.0) + (sky_part / b if b > 0 else 0.0)) / left
-    fv, fs = max(1.0, c * a), max(1.0, c * b)
-    if fv == 1.0 and sky_part > 0:  # one part needs no more samples: the other takes all that is left
-        fs = sky_part / (left - vis_part) if left > vis_part else math.inf
-    elif fs == 1.0 and vis_part > 0:
-        fv = vis_part / (left - sky_part) if left > sky_part else math.inf
-    return fv, fs
-
-
-def _grown(count: int, factor: float, most: int) -> int:
-    """``count`` times ``factor``, rounded up, within ``[count, most]`` (``most`` for an infinite factor)."""
-    return most if not math.isfinite(factor) else min(most, max(count, math.ceil(count * factor)))
 
 
 def moment_quadrature_tol(accuracy: float) -> float:
