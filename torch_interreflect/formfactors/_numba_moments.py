@@ -203,6 +203,18 @@ def build_rays(sel, start, dom, tgt, kind, rule, shift, rule_off, rule_u, rule_v
                 rt[k] = ln - 2.0 * eps
 
 
+@njit(cache=True, inline="always")
+def _outer_scratch(p, dom, tgt, kind, rule, shift, rule_off, rule_u, rule_v, rule_w, edge_rule, vertex_rule, corners,
+                   normals, buf, nb):
+    """The outer points of pair ``p`` (``X [buf, 3]``, weights ``Wt``, their count ``n``, :func:`outer_points`) and
+    the per-pair scratch of the moment loops: a point ``x [3]`` and three vectors of ``nb`` monomials."""
+    X = np.empty((buf, 3))
+    Wt = np.empty(buf)
+    n = outer_points(p, dom, tgt, kind, rule, shift, rule_off, rule_u, rule_v, rule_w, edge_rule, vertex_rule,
+                     corners, normals, X, Wt)
+    return n, X, Wt, np.empty(3), np.empty(nb), np.empty(nb), np.empty(nb)
+
+
 @njit(parallel=True, cache=True)
 def pair_moments(todo, dom, tgt, kind, rule, shift, fine, rule_off, rule_u, rule_v, rule_w, edge_rule, vertex_rule,
                  corners, normals, cent, e1, e2, inv_l, triangle, deg, gx, gw, gx_fine, gw_fine, buf, sel_of, ray_start,
@@ -229,14 +241,8 @@ def pair_moments(todo, dom, tgt, kind, rule, shift, fine, rule_off, rule_u, rule
         acc = np.zeros((nb, nb))
         W = np.empty((KMAX, 3))
         V = np.empty((KMAX, 3))
-        X = np.empty((buf, 3))
-        Wt = np.empty(buf)
-        x = np.empty(3)
-        mx = np.empty(nb)
-        my = np.empty(nb)
-        mom = np.empty(nb)
-        n = outer_points(p, dom, tgt, kind, rule, shift, rule_off, rule_u, rule_v, rule_w, edge_rule, vertex_rule,
-                         corners, normals, X, Wt)
+        n, X, Wt, x, mx, my, mom = _outer_scratch(p, dom, tgt, kind, rule, shift, rule_off, rule_u, rule_v, rule_w,
+                                                  edge_rule, vertex_rule, corners, normals, buf, nb)
         ni, nj = normals[i], normals[j]
         if kind[p] == 1:
             Cj = corners[j]
@@ -323,14 +329,8 @@ def blocked_moments(sel, ray_start, dom, tgt, kind, rule, shift, rule_off, rule_
         p = sel[t]
         i, j = dom[p], tgt[p]
         acc_b = np.zeros((nb, nb))
-        X = np.empty((buf, 3))
-        Wt = np.empty(buf)
-        x = np.empty(3)
-        mx = np.empty(nb)
-        my = np.empty(nb)
-        mom = np.empty(nb)
-        n = outer_points(p, dom, tgt, kind, rule, shift, rule_off, rule_u, rule_v, rule_w, edge_rule, vertex_rule,
-                         corners, normals, X, Wt)
+        n, X, Wt, x, mx, my, mom = _outer_scratch(p, dom, tgt, kind, rule, shift, rule_off, rule_u, rule_v, rule_w,
+                                                  edge_rule, vertex_rule, corners, normals, buf, nb)
         ni, nj = normals[i], normals[j]
         for o in range(n):
             x[0], x[1], x[2] = X[o, 0], X[o, 1], X[o, 2]
