@@ -114,9 +114,11 @@ HALVING_SHARE = 0.7
 #: counts on a level that met the discretisation's share, do not fit beside it (smooth light only, not ``halving``):
 #: the share is lowered to what they leave (with :data:`RAY_MARGIN`) and refinement goes on, rather than the rays
 #: growing, as long as that leaves at least this. Refining the few leaves that carry a smooth error is cheaper than
-#: more rays on every occluded pair: the W shape under a sun (r = 0.9) at 1e-3 took 1.0 s growing the rays from 3 to
-#: 12 per side, and 0.3–0.4 s with the share lowered to 0.5 or 0.35 of the request instead (0.047 % against
-#: 0.059 % / 0.053 % from Mitsuba, all within the estimate).
+#: more rays on every occluded pair: the W shape under a sun (r = 0.9) at 1e-3 took 0.92 s growing the rays from 3
+#: to 12 per side (162 leaves, 0.047 % from Mitsuba), and takes 0.52 s with the share lowered to 0.35 of the request
+#: (228 leaves, 3 rays per side, 0.064 %), both within their estimates. Lowering the share on every occluded scene
+#: instead was mixed where the light is rough (the Cornell box under a sky: 0.56–2.7× the time), so it is not done
+#: there.
 RAY_FIRST_SHARE = 0.3
 
 #: A ray-cast part is the change of the output that its replica makes, divided by this. Half the change is the RMS
