@@ -312,7 +312,7 @@ def refine_moments(pb: Problem, *, max_unknowns: int, max_iterations: int, show:
             change = Q_HALVING * relative_change(lv.x, before).cpu()  # F values: kept on the CPU
             est = torch.where(touched, change, torch.maximum(est, change))  # a neighbour's split moves it too
     bar.close()
-    if first is not None and first.leaves != leaves.scene.num_facets:
+    if first is not None and first.level is not lv:
         first = None  # measured on a level since refined
     lv, ray, est = _ray_parts(pb, leaves, lv, est, share, halving, history, t_start, first)
     return MomentRefinement(leaves, lv.K, lv.g, est.cpu(), ray.cpu(), it, reason, history,
@@ -325,11 +325,11 @@ def _occluded(lv: _Level) -> bool:
 
 @dataclass
 class _Replicas:
-    """Replicas of the ray-cast parts on one level (``leaves`` of them): the visibility's moments ``K`` and the
-    sky's rays ``sky`` drawn with another seed, the parts they measure per user facet (visibility, sky) and their
-    modelled costs."""
+    """Replicas of the ray-cast parts on one level (``level``): the visibility's moments ``K`` and the sky's rays
+    ``sky`` drawn with another seed, the parts they measure per user facet (visibility, sky) and their modelled
+    costs."""
 
-    leaves: int
+    level: _Level
     K: MomentFormFactors
     sky: SkyRays | None
     parts: list[Tensor]
@@ -351,7 +351,7 @@ def _replicas(pb: Problem, leaves: Leaves, lv: _Level, share: float, vis: int, s
         x_b = _level(pb, leaves, share, degree=lv.degree, moments=lv.full, sky=sky_b).x
         cost[1] = sky_cost(sky_b, sky)
         parts[1] = relative_change(x_b, lv.x).cpu() / REPLICA_MARGIN
-    return _Replicas(leaves.scene.num_facets, K_b, sky_b, parts, cost)
+    return _Replicas(lv, K_b, sky_b, parts, cost)
 
 
 def _ray_parts(pb: Problem, leaves: Leaves, lv: _Level, est: Tensor, share: float, halving: bool,
