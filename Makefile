@@ -45,7 +45,8 @@ bench-hierarchical-quick: $(STAMP)
 	$(BIN)/python -m benchmarks.hierarchical --quick
 
 bench-kernel: $(STAMP)
-	$(BIN)/python -m benchmarks.kernel --generate
+	$(BIN)/python -m benchmarks.kernel
+	$(BIN)/python -m benchmarks.generate_throughput
 
 bench-geometry-grad: $(STAMP)
 	$(BIN)/python -m benchmarks.geometry_grad

@@ -158,18 +158,10 @@ def _score(test: GeneratedDataset, out_dir: Path, seed: int, errors: dict[str, l
         errors.setdefault(label, []).append(_refined_errors(path, test, starts[key], b, pool))
 
 
-def _generate_shard(data: str, config: GeneratorConfig, shard: tuple[int, int]) -> None:
-    generate(data, config, shard=shard, progress=False)
-
-
 def _generate(args: argparse.Namespace) -> None:
-    """The seed-0 data of the study, generated in ``args.workers`` shards at once (what ``run_train_cc`` would
-    otherwise generate in one process)."""
+    """The seed-0 data of the study, rendered by ``args.workers`` processes at once (``generate``'s workers)."""
     gen = GeneratorConfig(count=args.count, seed=0, size=(args.size, args.size))
-    n = max(1, args.workers)
-    with ProcessPoolExecutor(n, mp_context=multiprocessing.get_context("spawn")) as ex:
-        for f in [ex.submit(_generate_shard, args.data, gen, (k, n)) for k in range(n)]:
-            f.result()
+    generate(args.data, gen, progress=False, workers=max(1, args.workers))
 
 
 def _pathtraced_root(args: argparse.Namespace) -> Path:

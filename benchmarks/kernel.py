@@ -7,10 +7,9 @@ all threads), one fresh subprocess builds
 the visibility seconds, the total, the per-point cost and the peak resident memory added by the call. The
 fused-loop floor is measured here too: a serial compiled loop that evaluates the same contour formula for
 points given in memory (no rule, no clipping, no Jacobian), i.e. the cheapest any kernel can be per point.
-``--generate`` also times ``interreflect generate --count 8 --size 64x64`` with the torch path
-(``TI_DISABLE_NUMBA=1``) and with the fused one, and compares the images written.
+``interreflect generate`` before and after is timed by :mod:`benchmarks.generate_throughput`.
 
-Usage: ``python benchmarks/kernel.py [--quick] [--generate]`` → ``benchmarks/results/kernel.md``.
+Usage: ``python benchmarks/kernel.py [--quick]`` → ``benchmarks/results/kernel.md``.
 """
 
 from __future__ import annotations
@@ -24,7 +23,6 @@ import platform
 import resource
 import subprocess
 import sys
-import tempfile
 import time
 from pathlib import Path
 
@@ -134,39 +132,9 @@ def run_one(scene_expr: str, backend: str, threads: int) -> dict:
     return json.loads(out.stdout.strip().splitlines()[-1])
 
 
-def generate(fused: bool) -> tuple[float, str, dict]:
-    """Seconds for ``interreflect generate --count 8 --size 64x64``, a hash of every file written, and its images."""
-    env = dict(os.environ)
-    env["TI_DISABLE_NUMBA"] = "0" if fused else "1"
-    exe = Path(sys.executable).with_name("interreflect")
-    with tempfile.TemporaryDirectory() as out:
-        t = time.perf_counter()
-        subprocess.run([str(exe), "generate", "--out", out, "--count", "8", "--size", "64x64", "--no-progress"],
-                       check=True, env=env, capture_output=True)
-        seconds = time.perf_counter() - t
-        h = hashlib.sha1()
-        images = {}
-        for f in sorted(Path(out).rglob("*")):
-            if f.is_file():
-                h.update(f.relative_to(out).as_posix().encode())
-                h.update(f.read_bytes())
-                if f.suffix == ".npy" and not f.name.startswith("_"):
-                    images[f.relative_to(out).as_posix()] = np.load(f)
-    return seconds, h.hexdigest()[:12], images
-
-
-def _largest_difference(a: dict, b: dict) -> float:
-    """Largest ``|a − b| / max |a|`` over the images both runs wrote (inf when the file lists differ)."""
-    if a.keys() != b.keys():
-        return math.inf
-    return max((float(np.abs(a[k].astype(np.float64) - b[k]).max() / max(np.abs(a[k]).max(), 1e-30)) for k in a),
-               default=0.0)
-
-
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="smaller scenes (≤ 1,024 facets)")
-    ap.add_argument("--generate", action="store_true", help="also time `interreflect generate` before/after")
     ap.add_argument("--one", nargs=3, help=argparse.SUPPRESS)
     ap.add_argument("--out", default=str(ROOT / "results" / "kernel.md"))
     args = ap.parse_args()
@@ -184,12 +152,10 @@ def main() -> None:
             res[(backend, threads)] = r
             print(name, backend, threads, json.dumps(r), flush=True)
         rows.append((name, res))
-        write(Path(args.out), rows, floor, all_threads, None, args.quick)  # partial results survive a stop
-    gen = (generate(False), generate(True)) if args.generate else None
-    write(Path(args.out), rows, floor, all_threads, gen, args.quick)
+        write(Path(args.out), rows, floor, all_threads, args.quick)  # partial results survive a stop
 
 
-def write(path: Path, rows, floor: float, nt: int, gen, quick: bool) -> None:
+def write(path: Path, rows, floor: float, nt: int, quick: bool) -> None:
     load = os.getloadavg()
     lines = [
         "# Form-factor kernel: torch quadrature (before) vs fused compiled loop (after)",
@@ -251,18 +217,6 @@ def write(path: Path, rows, floor: float, nt: int, gen, quick: bool) -> None:
             f"{fn['occluded_visibility_s'] / max(f1['occluded_visibility_s'], 1e-9):.2f} | "
             f"{fn['occluded_wall_s'] / f1['occluded_wall_s']:.2f} | {'yes' if same else 'NO'} |"
         )
-    if gen:
-        (t0, h0, i0), (t1, h1, i1) = gen
-        same = ("bytes of every file identical" if h0 == h1 else
-                f"the images differ by at most {_largest_difference(i0, i1):.1e} of their maximum (the compiled "
-                "visibility rounds its rays and weights differently; a ray that grazes a face can flip)")
-        lines += [
-            "",
-            "## `interreflect generate --count 8 --size 64x64`",
-            "",
-            f"torch path (`TI_DISABLE_NUMBA=1`) {8 / t0:.2f} samples/s, fused {8 / t1:.2f} samples/s "
-            f"({t0 / t1:.2f}×); {same}.",
-        ]
     path.write_text("\n".join(lines) + "\n")
     print(path.read_text())
 

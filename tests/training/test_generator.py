@@ -198,6 +198,8 @@ def test_cli(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     (["--count", "2", "--shading", "smooth"], "argument --shading: invalid choice: 'smooth'"),
     (["--count", "2", "--shard", "2/2"], "shard must satisfy 0 <= shard < num_shards"),
     (["--count", "2", "--camera", "Nikon 510O"], "unknown camera 'Nikon 510O'"),
+    (["--count", "2", "--workers", "0"], "argument --workers: expected 'auto' or an integer >= 1; got '0'"),
+    (["--count", "2", "--workers", "many"], "argument --workers: expected 'auto' or an integer >= 1; got 'many'"),
 ])
 def test_cli_usage_errors_are_one_line_exit_2_and_write_nothing(
     tmp_path: Path, capsys: pytest.CaptureFixture[str], bad: list[str], says: str
@@ -355,3 +357,42 @@ def test_solver_accuracy_warnings_come_once_per_run(tmp_path: Path) -> None:
                           g.load_geometry(s.geometry), truth, steps=3)
     accuracy = [str(w.message) for w in caught if issubclass(w.category, AccuracyWarning)]
     assert len(accuracy) == 1 and accuracy[0].startswith("refine_illuminant: ") and "of the fit's solves" in accuracy[0]
+
+
+def test_worker_processes_write_the_same_bytes_and_resume(full_run: Path, tmp_path: Path) -> None:
+    """Two processes (this one and a spawned one) write the files one process writes, the manifest included; a run
+    interrupted by ``limit`` resumes with workers; inaccurate solves are reported from either process."""
+    first = g.generate(tmp_path, CFG, progress=False, limit=1, workers=2)
+    assert first.written == [0] and first.workers == 2  # one sample: rendered here, no process started
+    res = g.generate(tmp_path, CFG, progress=False, workers=2)
+    assert res.written == [1, 2, 3, 4] and res.skipped == [0] and res.workers == 2
+    assert _files(tmp_path) == _files(full_run)
+    from torch_interreflect.errors import AccuracyWarning
+    from torch_interreflect.training.workers import render_indices
+
+    cfg = g.GeneratorConfig(count=5, seed=0, scenes=("cornell",), size=(8, 8), bounces=(None,))
+    with pytest.warns(AccuracyWarning, match="the solves of 2 of 5 samples warned.*sample 3: "):
+        res = g.generate(tmp_path / "d", cfg, progress=False, workers=2)
+    assert res.inaccurate == [3, 4]  # as in one process (test_solver_accuracy_warnings_come_once_per_run)
+    # the spawned process takes the first indices (3 and 4 here), this one the last: warnings come back from it
+    (tmp_path / "e").mkdir()
+    got = dict(render_indices(tmp_path / "e", cfg, [3, 4, 0, 1, 2], workers=2))
+    assert sorted(got) == [0, 1, 2, 3, 4]
+    assert [k for k, w in sorted(got.items()) if w is not None] == [3, 4] and "closure error" in got[3]
+    assert _samples(tmp_path / "e") == {k: v for k, v in _samples(tmp_path / "d").items() if k != "dataset.json"}
+
+
+def test_auto_workers_start_one_process_per_32_samples_up_to_the_cores(monkeypatch: pytest.MonkeyPatch,
+                                                                       tmp_path: Path) -> None:
+    from torch_interreflect.training import workers
+
+    monkeypatch.setattr(workers, "usable_cores", lambda: 4)
+    assert [workers.auto_workers(n) for n in (0, 31, 32, 95, 96, 1000)] == [1, 1, 1, 2, 3, 4]
+    res = g.generate(tmp_path, g.GeneratorConfig(**{**CFG.__dict__, "count": 2}), progress=False, workers="auto")
+    assert res.workers == 1 and res.written == [0, 1]
+    for bad in (0, -1, 1.5, "all", True):
+        with pytest.raises(ValueError, match="workers must be a positive int or 'auto'"):
+            g.generate(tmp_path / "never", CFG, progress=False, workers=bad)
+    assert not (tmp_path / "never").exists()
+    with pytest.raises(ValueError, match="workers must be at least 1; got 0"):
+        next(workers.render_indices(tmp_path, CFG, [0], workers=0))

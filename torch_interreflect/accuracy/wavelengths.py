@@ -9,6 +9,7 @@ import torch
 from torch import Tensor
 
 from .. import spectral
+from .._checks import broadcast_shapes
 from ..camera.sensor import Camera
 from ..errors import ShapeError, ValueRangeError
 
@@ -44,7 +45,7 @@ def spectra(grid: Tensor, illuminant: Any, reflectance: Any, F: int) -> tuple[Te
         raise ShapeError(f"reflectance must be [..., F, L] or [..., F] with F = {F}, L = {L}; got {list(r.shape)}")
     if r.numel() and (bool((r.detach() < 0).any()) or bool((r.detach() > 1).any())):
         raise ValueRangeError(f"reflectance must lie in [0, 1]; got [{float(r.min()):.3g}, {float(r.max()):.3g}]")
-    torch.broadcast_shapes(r.shape[:-2], S.shape[:-1])  # raises on batch shapes that do not broadcast
+    broadcast_shapes(r.shape[:-2], S.shape[:-1])  # raises on batch shapes that do not broadcast
     return S, r
 
 

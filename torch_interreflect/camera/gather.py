@@ -27,7 +27,7 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
-from .._checks import check_count
+from .._checks import broadcast_shapes, check_count
 from .._sparse import constant_product, sparse_matrix, to_csr
 from ..errors import ShapeError
 from ..geometry.raycast import RayCaster
@@ -465,7 +465,7 @@ def source_irradiance(form_factors: Any, reflectance: Tensor, E0: Tensor, bounce
         ``E`` in W·m⁻²·nm⁻¹. Shape that of ``solve``'s output ``[..., F, L]``.
     """
     if bounces == 1:
-        return torch.zeros(torch.broadcast_shapes(reflectance.shape, E0.shape), dtype=E0.dtype, device=E0.device)
+        return torch.zeros(broadcast_shapes(reflectance.shape, E0.shape), dtype=E0.dtype, device=E0.device)
     return solve(form_factors, reflectance, E0, bounces=None if bounces is None else bounces - 1, **solve_kwargs)
 
 

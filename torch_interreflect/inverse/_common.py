@@ -9,6 +9,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
+from .._checks import broadcast_shapes
 from ..camera.sensor import Camera
 from ..errors import ShapeError, ValueRangeError
 from ..formfactors.operator import FormFactors
@@ -94,7 +95,7 @@ def alternating(
     if tol is None:
         tol = 1e-9 if observed.dtype == torch.float64 else 1e-5
     kern = camera_kernel(camera, observed)  # [C, L]
-    shape = torch.broadcast_shapes(observed.shape[:-1], E0.shape[:-1])
+    shape = broadcast_shapes(observed.shape[:-1], E0.shape[:-1])
     obs = observed.expand(*shape, observed.shape[-1])
     E = E0.expand(*shape, E0.shape[-1])
     r_prev: Tensor | None = None

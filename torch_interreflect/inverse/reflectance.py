@@ -11,6 +11,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
+from .._checks import broadcast_shapes
 from ..camera.facet_rgb import facet_rgb
 from ..errors import ValueRangeError
 from ..formfactors.operator import FormFactors
@@ -172,7 +173,7 @@ def estimate_reflectance(
                 ff, model.camera, obs.detach(), e0.detach(), mean, comps, bounces=bounces, max_iter=max_iter, tol=tol
             )
         else:  # a non-linear basis: start from the mean spectrum
-            c = torch.zeros(*torch.broadcast_shapes(obs.shape[:-1], e0.shape[:-1]), comps.shape[0]).to(obs)
+            c = torch.zeros(*broadcast_shapes(obs.shape[:-1], e0.shape[:-1]), comps.shape[0]).to(obs)
             r, it, conv = basis(c), 0, False
     if method == "gradient":
         c = c.detach().clone().requires_grad_(True)

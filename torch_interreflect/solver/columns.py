@@ -16,7 +16,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from .._checks import as_real_tensor, check_nonnegative, check_reflectance, check_same_device
+from .._checks import as_real_tensor, broadcast_shapes, check_nonnegative, check_reflectance, check_same_device
 from ..errors import ShapeError, SingularSystemError
 from .dense import dense_solve
 from .krylov import cg_block, error_tolerance, neumann_block
@@ -179,7 +179,7 @@ def broadcast_facet_shapes(n: int, reflectance: Tensor, e0: Tensor) -> tuple[Ten
     else:
         raise ShapeError(f"E0 must have shape [..., F, L] (or [F]) with F = {n} facets; got {list(e0.shape)}")
     try:
-        shape = torch.broadcast_shapes(r.shape, e.shape)
+        shape = broadcast_shapes(r.shape, e.shape)
     except RuntimeError as exc:
         raise ShapeError(
             f"reflectance {list(r.shape)} (as [..., F, L]) and E0 {list(e.shape)} do not broadcast: "

@@ -18,7 +18,7 @@ import math
 import torch
 from torch import Tensor
 
-from .._checks import as_real_tensor, check_finite, check_reflectance, check_same_device
+from .._checks import as_real_tensor, broadcast_shapes, check_finite, check_reflectance, check_same_device
 from ..errors import ShapeError
 from ..formfactors.moments import MomentFormFactors
 from .columns import from_columns, to_columns
@@ -126,7 +126,7 @@ def solve_moments(
     r, e0 = r.to(dtype), e0.to(dtype)
     check_reflectance(r)
     check_finite(e0.flatten(-2), "E0", -2)
-    lead = torch.broadcast_shapes(r.shape[:-2], e0.shape[:-3])
+    lead = broadcast_shapes(r.shape[:-2], e0.shape[:-3])
     L = max(int(r.shape[-1]), int(e0.shape[-1]))
     shape = torch.Size([*lead, F * nb, L])
     r_rep = r.repeat_interleave(nb, dim=-2)  # [..., F·nb, L]

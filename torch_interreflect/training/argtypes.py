@@ -7,7 +7,9 @@ import argparse
 
 from .config import parse_shard
 
-__all__ = ["bounce_count", "fraction", "image_size", "nonnegative_int", "positive_float", "positive_int", "shard"]
+__all__ = [
+    "bounce_count", "fraction", "image_size", "nonnegative_int", "positive_float", "positive_int", "shard", "workers",
+]
 
 
 def _int(text: str, what: str) -> int:
@@ -97,3 +99,19 @@ def shard(text: str) -> tuple[int, int]:
         return parse_shard(text)
     except ValueError as exc:
         raise argparse.ArgumentTypeError(str(exc)) from exc
+
+
+def workers(text: str) -> int | str:
+    """``"auto"`` or an integer ≥ 1 (worker processes of ``generate``).
+
+    Example:
+        >>> from torch_interreflect.training.argtypes import workers
+        >>> workers("auto"), workers("2")
+        ('auto', 2)
+    """
+    if text.strip().lower() == "auto":
+        return "auto"
+    v = _int(text, "'auto' or an integer >= 1")
+    if v < 1:
+        raise argparse.ArgumentTypeError(f"expected 'auto' or an integer >= 1; got {text!r}")
+    return v

@@ -82,6 +82,9 @@ def add_generate_parser(sub: Any) -> argparse.ArgumentParser:
     p.add_argument("--gather-stride", type=argtypes.positive_int, default=1,
                    help="with gather: gather every n pixels per side and interpolate (faster, less exact; default 1)")
     p.add_argument("--no-geometry", action="store_true", help="do not write the _geometry.npz files")
+    p.add_argument("--workers", type=argtypes.workers, default="auto",
+                   help="processes rendering at once, or auto (default): one per 32 samples left to render, up to "
+                        "the usable cores; the same bytes whatever the number")
     p.add_argument("--no-progress", action="store_true", help="hide the progress bar")
     p.set_defaults(func=_run_generate)
     return p
@@ -95,10 +98,12 @@ def _run_generate(args: argparse.Namespace) -> int:
         split_contacts=not args.no_split_contacts, visibility_samples=args.visibility_samples,
         gather_stride=args.gather_stride, edge_supersample=args.edge_supersample,
     )
-    res = generate(args.out, config, shard=args.shard, progress=not args.no_progress)
+    res = generate(args.out, config, shard=args.shard, progress=not args.no_progress, workers=args.workers)
     removed = f", removed {len(res.removed)} stale temporary files" if res.removed else ""
+    procs = f" on {res.workers} processes" if res.workers > 1 else ""
     print(f"shard {args.shard[0]}/{args.shard[1]}: wrote {len(res.written)} samples, skipped {len(res.skipped)} "
-          f"complete ones{removed}, in {res.seconds:.1f} s ({res.samples_per_second:.2f} samples/s) -> {args.out}")
+          f"complete ones{removed}, in {res.seconds:.1f} s{procs} ({res.samples_per_second:.2f} samples/s) "
+          f"-> {args.out}")
     return 0
 
 

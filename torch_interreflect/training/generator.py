@@ -21,7 +21,9 @@ Resumability: every file is written to a temporary name and moved into place wit
 samples (sidecar present, every listed file present) are skipped; temporary files a killed run left behind are
 removed; each shard keeps a manifest (``manifest/shard-{i}-of-{n}.json``) of the indices it completed. Shards
 partition the index range (``index % n == i``), so local processes, SLURM array jobs or Ray tasks can run them in
-parallel. A folder can grow: a run with a larger ``count`` (and otherwise the same configuration) adds samples.
+parallel. Within one shard, ``workers`` processes render at once (:mod:`.workers`: this one and spawned ones; the
+command line's default, ``--workers auto``, starts one per 32 samples to render, up to the usable cores), with the
+same bytes. A folder can grow: a run with a larger ``count`` (and otherwise the same configuration) adds samples.
 """
 
 from __future__ import annotations
@@ -36,7 +38,7 @@ import torch
 
 from .._deprecation import moved_attribute
 from .._version import __version__
-from ..errors import AccuracyWarning, collect_warnings
+from ..errors import AccuracyWarning
 from .config import CONFIG_FILE, MANIFEST_DIR, GeneratorConfig, parse_shard, sample_files, shard_indices, variant_suffix
 from .sample import Sample, load_resources, render_sample
 from .storage import (
@@ -47,6 +49,7 @@ from .storage import (
     remove_stale_temporaries,
     write_sample,
 )
+from .workers import auto_workers, render_indices
 
 __all__ = [
     "CONFIG_FILE",
@@ -86,6 +89,7 @@ class GenerateResult:
             (:class:`~torch_interreflect.errors.AccuracyWarning`; bright closed rooms, where the form factors'
             closure error, amplified by ``1/(1 − r ρ)``, bounds the error at ~1–2 %). They are reported by one
             warning at the end of the run, not one per sample.
+        workers: Processes that rendered (1: this process).
     """
 
     written: list[int]
@@ -93,6 +97,7 @@ class GenerateResult:
     seconds: float
     removed: list[Path] = dataclasses.field(default_factory=list)
     inaccurate: list[int] = dataclasses.field(default_factory=list)
+    workers: int = 1
 
     @property
     def samples_per_second(self) -> float:
@@ -164,6 +169,7 @@ def generate(
     progress: bool = True,
     limit: int | None = None,
     threads: int | None = 1,
+    workers: int | str = 1,
 ) -> GenerateResult:
     """Render and write the samples of one shard, skipping complete ones (resumable; see the module docstring).
 
@@ -175,50 +181,53 @@ def generate(
         progress: Show a tqdm progress bar.
         limit: Stop after writing this many samples (for tests of interrupted runs).
         threads: Torch threads while rendering (1 = deterministic bytes whatever the machine; ``None`` keeps the
-            current setting).
+            current setting), in this process or in each worker.
+        workers: Processes rendering at once (the same bytes whatever the number), or ``"auto"``: one per
+            :data:`~.workers.MIN_SAMPLES_PER_WORKER` samples left to render, up to the usable cores (a worker's
+            start-up costs about 20 samples at 64 × 64). ``1`` renders in this process.
 
     Returns:
         A :class:`GenerateResult`.
 
     Raises:
-        ValueError: a bad shard, or ``out`` holding samples of another configuration (nothing is written).
+        ValueError: a bad shard or ``workers``, or ``out`` holding samples of another configuration (nothing is
+            written).
         SpectralDataError: an unknown camera (nothing is written).
     """
     from tqdm.auto import tqdm
 
     out = Path(out)
     indices = shard_indices(config.count, *shard)
+    if not (workers == "auto" or (isinstance(workers, int) and not isinstance(workers, bool) and workers >= 1)):
+        raise ValueError(f"workers must be a positive int or 'auto'; got {workers!r}")
     removed = _prepare(out, config, indices)
     old_threads = torch.get_num_threads()
     if threads is not None:
         torch.set_num_threads(int(threads))
     t0 = time.perf_counter()
+    complete = [is_complete(out, k) for k in indices]
+    skipped = [k for k, c in zip(indices, complete, strict=True) if c]
+    todo = [k for k, c in zip(indices, complete, strict=True) if not c][:limit]
+    n_workers = auto_workers(len(todo)) if workers == "auto" else int(workers)
     written: list[int] = []
-    skipped: list[int] = []
     inaccurate: dict[int, str] = {}
     try:
-        bar = tqdm(indices, desc=f"generate {shard[0]}/{shard[1]}", unit="sample", disable=not progress)
-        for k in bar:
-            if is_complete(out, k):
-                skipped.append(k)
-                continue
-            if limit is not None and len(written) >= limit:
-                break
-            with collect_warnings(AccuracyWarning) as got:  # reported once, at the end
-                sample = render_sample(config, k)
-            if got:
-                inaccurate[k] = got[0]
-            write_sample(out, sample)
-            written.append(k)
-            if len(written) % 50 == 0:
-                _write_manifest(out, shard, config, sorted(written + skipped))
-        bar.close()
+        desc = f"generate {shard[0]}/{shard[1]}" + (f" ({n_workers} processes)" if n_workers > 1 else "")
+        with tqdm(total=len(indices), initial=len(skipped), desc=desc, unit="sample", disable=not progress) as bar:
+            for k, warning in render_indices(out, config, todo, workers=n_workers, threads=threads):
+                if warning is not None:
+                    inaccurate[k] = warning
+                written.append(k)
+                bar.update()
+                if len(written) % 50 == 0:
+                    _write_manifest(out, shard, config, sorted(written + skipped))
         _write_manifest(out, shard, config, sorted(written + skipped))
     finally:
         torch.set_num_threads(old_threads)
     if inaccurate:
-        first = next(iter(inaccurate.items()))
+        first = min(inaccurate.items())
         warnings.warn(f"generate: the solves of {len(inaccurate)} of {len(written)} samples warned that their error "
                       f"bound is above the solver's tolerance (GenerateResult.inaccurate lists them); sample "
                       f"{first[0]}: {first[1]}", AccuracyWarning, stacklevel=2)
-    return GenerateResult(written, skipped, time.perf_counter() - t0, removed, sorted(inaccurate))
+    return GenerateResult(sorted(written), skipped, time.perf_counter() - t0, removed, sorted(inaccurate),
+                          n_workers)

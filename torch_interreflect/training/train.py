@@ -194,7 +194,9 @@ def _data_config(cfg: TrainConfig) -> GeneratorConfig:
 def _ensure_data(cfg: TrainConfig, dist: _Dist) -> GeneratorConfig:
     gen = _data_config(cfg)
     if not all(is_complete(cfg.data, i) for i in range(cfg.count)):
-        generate(cfg.data, gen, shard=(dist.rank, dist.world), progress=cfg.progress and dist.main)
+        # one process: render on every core (generate's workers); under DDP the ranks already share the work
+        generate(cfg.data, gen, shard=(dist.rank, dist.world), progress=cfg.progress and dist.main,
+                 workers="auto" if dist.world == 1 else 1)
     dist.barrier()
     return gen
 
