@@ -396,3 +396,15 @@ def test_auto_workers_start_one_process_per_32_samples_up_to_the_cores(monkeypat
     assert not (tmp_path / "never").exists()
     with pytest.raises(ValueError, match="workers must be at least 1; got 0"):
         next(workers.render_indices(tmp_path, CFG, [0], workers=0))
+
+
+def test_an_error_in_a_worker_process_stops_the_run_and_is_raised(tmp_path: Path) -> None:
+    """A sample that cannot be written (its sidecar's name taken by a folder) fails in the spawned process that takes
+    it: the run raises that error, does not hang, and marks nothing of it complete."""
+    cfg = g.GeneratorConfig(count=5, seed=7, scenes=("v_groove",), size=(8, 8), bounces=(None,))
+    g.generate(tmp_path, g.GeneratorConfig(**{**cfg.__dict__, "count": 0}), progress=False)  # the folder, config
+    (tmp_path / "000000.json").mkdir()  # index 0 goes to the spawned process (it takes the first indices)
+    with pytest.raises(OSError):
+        g.generate(tmp_path, cfg, progress=False, workers=2)
+    assert not g.is_complete(tmp_path, 0)
+    assert not list(tmp_path.glob(".*tmp*"))  # the failed write left no temporary file
