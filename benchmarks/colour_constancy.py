@@ -4,9 +4,9 @@
 (:func:`torch_interreflect.spectral.illuminant_basis`) reaches, against the former CIE-daylight ``(M1, M2)`` model
 (:mod:`torch_interreflect.training.floors`).
 
-``--study``: ``interreflect train-cc`` with ``--seeds`` training seeds on one generated data set (generated first in
-``--workers`` shards at once; the held-out split is the last 20 % of the scenes, of which the first ``--max-test``
-are scored), then per test image and seed the angular errors of every method:
+``--study``: ``interreflect train-cc`` with ``--seeds`` training seeds on one generated data set (generated first by
+``--workers`` processes at once, ``generate``'s workers; the held-out split is the last 20 % of the scenes, of which
+the first ``--max-test`` are scored), then per test image and seed the angular errors of every method:
 
 - without geometry: Grey-World, White-Patch, Grey-Edge, the FC4-style CNN trained on direct-only, two-bounce and
   ∞-bounce images, the physics-informed network;

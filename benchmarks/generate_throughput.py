@@ -4,8 +4,10 @@ Each cell is one fresh ``interreflect generate --size 64x64`` process (default o
 outside (what the user waits: start-up, imports and compiled-kernel loading included) and by the command itself
 (``generate``'s own seconds: from the first sample on). Configurations:
 
-- *torch, 1 process*: the torch quadrature (``TI_DISABLE_NUMBA=1``), ``--workers 1``: the command before the fused
-  kernel and before ``--workers``;
+- *torch, 1 process*: today's code with the compiled kernels off (``TI_DISABLE_NUMBA=1``: the torch quadrature)
+  and ``--workers 1``: the command before the fused kernel and ``--workers``, less the later changes that do not
+  depend on them (e.g. the 0.26 s import of sympy that ``torch.broadcast_shapes`` made), so the speed-ups against it
+  are approximate;
 - *fused, 1 process*: the compiled kernels, ``--workers 1``;
 - *fused, auto*: the default (``--workers auto``: one process per 32 samples to render, up to the cores).
 
@@ -88,7 +90,8 @@ def main() -> None:
         f"{platform.python_version()}; load average at the end {load[0]:.1f} / {load[1]:.1f} / {load[2]:.1f}. "
         "Each cell is one fresh process with the default options; *wall*: timed from outside (start-up included), "
         "*own*: the seconds the command reports (from its first sample on). Speed-ups against *torch, 1 process* "
-        "(the command before the fused kernel and `--workers`) at the same count.",
+        "(today's code with the compiled kernels off, `TI_DISABLE_NUMBA=1`, and `--workers 1`: the command before "
+        "the fused kernel and `--workers`, less later changes that do not depend on them) at the same count.",
         "",
         "| count | configuration | processes | wall s | samples/s (wall) | own s | samples/s (own) | × before (wall) "
         "| × before (own) |",

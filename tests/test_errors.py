@@ -5,6 +5,7 @@ from __future__ import annotations
 import warnings
 
 import pytest
+import torch
 
 from torch_interreflect.errors import AccuracyWarning, ConvergenceWarning, collect_warnings
 
@@ -63,3 +64,22 @@ def test_counts_are_checked_by_one_rule() -> None:
         ti.lights.lit_fraction(scene, torch.tensor([0.0, 0.0, -1.0]), shadow_samples=0)
     with pytest.raises(ValueRangeError, match=r"visibility_samples must be an integer >= 1; got 1\.5"):
         ti.form_factors(scene, visibility_samples=1.5)
+
+
+@pytest.mark.parametrize("shapes", [((2, 1, 3), (4, 3)), ((), (5,)), ((0, 3), (1, 3)), ((3,), (3,)),
+                                    (torch.Size([2, 1]), torch.Size([1, 7])), ((1,), (0,))])
+def test_broadcast_shapes_agrees_with_torch(shapes) -> None:
+    from torch_interreflect._checks import broadcast_shapes
+
+    assert broadcast_shapes(*shapes) == torch.broadcast_shapes(*shapes)
+    assert type(broadcast_shapes(*shapes)) is torch.Size
+
+
+def test_broadcast_shapes_that_do_not_broadcast_are_shape_errors() -> None:
+    from torch_interreflect._checks import broadcast_shapes
+    from torch_interreflect.errors import ShapeError
+
+    with pytest.raises(RuntimeError):
+        torch.broadcast_shapes((2, 3), (4,))
+    with pytest.raises(ShapeError, match=r"shapes \[\[2, 3\], \[4\]\] do not broadcast"):
+        broadcast_shapes((2, 3), (4,))

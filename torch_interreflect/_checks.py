@@ -28,11 +28,12 @@ __all__ = [
 
 
 def broadcast_shapes(*shapes: Sequence[int]) -> torch.Size:
-    """:func:`torch.broadcast_shapes` without the import of sympy that its first call makes (0.26 s per process):
-    numpy's broadcasting rule, torch's error type.
+    """:func:`torch.broadcast_shapes` of sizes (sequences of non-negative ints) without the import of sympy that its
+    first call makes (0.26 s per process): numpy's broadcasting rule.
 
     Raises:
-        RuntimeError: The shapes do not broadcast (as :func:`torch.broadcast_shapes`).
+        ShapeError: The shapes do not broadcast (a ``ValueError``; :func:`torch.broadcast_shapes` raises a
+            ``RuntimeError``).
 
     Example:
         >>> from torch_interreflect._checks import broadcast_shapes
@@ -42,7 +43,7 @@ def broadcast_shapes(*shapes: Sequence[int]) -> torch.Size:
     try:
         return torch.Size(np.broadcast_shapes(*(tuple(int(d) for d in s) for s in shapes)))
     except ValueError as exc:
-        raise RuntimeError(f"shapes {[list(s) for s in shapes]} do not broadcast") from exc
+        raise ShapeError(f"shapes {[list(s) for s in shapes]} do not broadcast") from exc
 
 
 def check_count(value: Any, name: str, *, minimum: int = 1, optional: bool = False, note: str = "") -> int | None:

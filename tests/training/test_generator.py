@@ -363,9 +363,13 @@ def test_worker_processes_write_the_same_bytes_and_resume(full_run: Path, tmp_pa
     """Two processes (this one and a spawned one) write the files one process writes, the manifest included; a run
     interrupted by ``limit`` resumes with workers; inaccurate solves are reported from either process."""
     first = g.generate(tmp_path, CFG, progress=False, limit=1, workers=2)
-    assert first.written == [0] and first.workers == 2  # one sample: rendered here, no process started
+    assert first.written == [0] and first.workers == 1  # one sample: rendered here, no process started
+    second = g.generate(tmp_path, CFG, progress=False, limit=3, workers=2)  # interrupted with two processes
+    assert second.written == [1, 2, 3] and second.skipped == [0] and second.workers == 2
+    manifest = json.loads((tmp_path / g.MANIFEST_DIR / "shard-0000-of-0001.json").read_text())
+    assert manifest["done"] == [0, 1, 2, 3] and not manifest["complete"]
     res = g.generate(tmp_path, CFG, progress=False, workers=2)
-    assert res.written == [1, 2, 3, 4] and res.skipped == [0] and res.workers == 2
+    assert res.written == [4] and res.skipped == [0, 1, 2, 3] and res.workers == 1
     assert _files(tmp_path) == _files(full_run)
     from torch_interreflect.errors import AccuracyWarning
     from torch_interreflect.training.workers import render_indices
@@ -390,12 +394,17 @@ def test_auto_workers_start_one_process_per_32_samples_up_to_the_cores(monkeypat
     assert [workers.auto_workers(n) for n in (0, 31, 32, 95, 96, 1000)] == [1, 1, 1, 2, 3, 4]
     res = g.generate(tmp_path, g.GeneratorConfig(**{**CFG.__dict__, "count": 2}), progress=False, workers="auto")
     assert res.workers == 1 and res.written == [0, 1]
+    assert workers.auto_workers(1000, threads=2) == 2 and workers.auto_workers(1000, threads=8) == 1
     for bad in (0, -1, 1.5, "all", True):
         with pytest.raises(ValueError, match="workers must be a positive int or 'auto'"):
             g.generate(tmp_path / "never", CFG, progress=False, workers=bad)
+    with pytest.raises(ValueError, match="limit must be None or an integer >= 0; got -1"):
+        g.generate(tmp_path / "never", CFG, progress=False, limit=-1)
     assert not (tmp_path / "never").exists()
-    with pytest.raises(ValueError, match="workers must be at least 1; got 0"):
-        next(workers.render_indices(tmp_path, CFG, [0], workers=0))
+    for bad in (0, 1.5, "auto"):
+        with pytest.raises(ValueError, match="workers must be a positive int; got"):
+            next(workers.render_indices(tmp_path, CFG, [0], workers=bad))
+    assert [workers.processes(w, n) for w, n in ((4, 2), (2, 0), (2, 1), (3, 10))] == [2, 1, 1, 3]
 
 
 def test_an_error_in_a_worker_process_stops_the_run_and_is_raised(tmp_path: Path) -> None:
@@ -404,7 +413,43 @@ def test_an_error_in_a_worker_process_stops_the_run_and_is_raised(tmp_path: Path
     cfg = g.GeneratorConfig(count=5, seed=7, scenes=("v_groove",), size=(8, 8), bounces=(None,))
     g.generate(tmp_path, g.GeneratorConfig(**{**cfg.__dict__, "count": 0}), progress=False)  # the folder, config
     (tmp_path / "000000.json").mkdir()  # index 0 goes to the spawned process (it takes the first indices)
-    with pytest.raises(OSError):
+    with pytest.raises(OSError, match=r"000000\.json"):
         g.generate(tmp_path, cfg, progress=False, workers=2)
-    assert not g.is_complete(tmp_path, 0)
+    assert (tmp_path / "000000.json").is_dir()  # untouched
     assert not list(tmp_path.glob(".*tmp*"))  # the failed write left no temporary file
+
+
+@pytest.mark.skipif(not Path("/proc/self/status").exists(), reason="reads /proc (Linux)")
+def test_workers_exit_when_their_parent_is_killed(tmp_path: Path) -> None:
+    """A parent killed by SIGKILL runs no shutdown: its spawned workers notice and exit instead of waiting forever."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    code = ("import sys; from torch_interreflect.training import generator as g; "
+            "g.generate(sys.argv[1], g.GeneratorConfig(count=60, seed=7, scenes=('v_groove',), size=(8, 8), "
+            "bounces=(None,)), progress=False, workers=2)")
+    p = subprocess.Popen([sys.executable, "-c", code, str(tmp_path / "d")])
+    deadline = time.monotonic() + 120
+    while time.monotonic() < deadline and len(list((tmp_path / "d").glob("*.json"))) < 6:
+        time.sleep(0.2)  # until both processes write samples
+    children = [c for c in os.listdir("/proc") if c.isdigit() and _proc_field(c, "PPid:") == str(p.pid)]
+    assert children, "no worker process was started"
+    os.kill(p.pid, signal.SIGKILL)
+    p.wait()
+    deadline = time.monotonic() + 30
+    alive = children
+    while alive and time.monotonic() < deadline:
+        time.sleep(0.2)
+        alive = [c for c in alive if "zombie" not in _proc_field(c, "State:").lower()]
+    assert not alive, f"workers {alive} outlived their killed parent"
+
+
+def _proc_field(pid: str, field: str) -> str:
+    """A field of ``/proc/<pid>/status`` (``"zombie"`` once the process is gone)."""
+    try:
+        return Path(f"/proc/{pid}/status").read_text().split(field)[1].split("\n")[0].strip()
+    except (OSError, IndexError):
+        return "zombie"

@@ -180,7 +180,7 @@ def broadcast_facet_shapes(n: int, reflectance: Tensor, e0: Tensor) -> tuple[Ten
         raise ShapeError(f"E0 must have shape [..., F, L] (or [F]) with F = {n} facets; got {list(e0.shape)}")
     try:
         shape = broadcast_shapes(r.shape, e.shape)
-    except RuntimeError as exc:
+    except ShapeError as exc:
         raise ShapeError(
             f"reflectance {list(r.shape)} (as [..., F, L]) and E0 {list(e.shape)} do not broadcast: "
             f"wavelength counts L = {r.shape[-1]} vs {e.shape[-1]}, batch dims {list(r.shape[:-2])} vs "

@@ -36,6 +36,7 @@ from pathlib import Path
 
 import torch
 
+from .._checks import check_count
 from .._deprecation import moved_attribute
 from .._version import __version__
 from ..errors import AccuracyWarning
@@ -49,7 +50,7 @@ from .storage import (
     remove_stale_temporaries,
     write_sample,
 )
-from .workers import auto_workers, render_indices
+from .workers import auto_workers, check_workers, processes, render_indices
 
 __all__ = [
     "CONFIG_FILE",
@@ -89,7 +90,7 @@ class GenerateResult:
             (:class:`~torch_interreflect.errors.AccuracyWarning`; bright closed rooms, where the form factors'
             closure error, amplified by ``1/(1 − r ρ)``, bounds the error at ~1–2 %). They are reported by one
             warning at the end of the run, not one per sample.
-        workers: Processes that rendered (1: this process).
+        workers: Processes that rendered (1: this process only; at most one per sample written).
     """
 
     written: list[int]
@@ -179,36 +180,38 @@ def generate(
             (a larger ``count`` grows the folder).
         shard: ``(i, n)``: this process renders indices ``i, i + n, i + 2n, …`` below ``config.count``.
         progress: Show a tqdm progress bar.
-        limit: Stop after writing this many samples (for tests of interrupted runs).
+        limit: Stop after writing this many samples (``>= 0``; for tests of interrupted runs).
         threads: Torch threads while rendering (1 = deterministic bytes whatever the machine; ``None`` keeps the
             current setting), in this process or in each worker.
-        workers: Processes rendering at once (the same bytes whatever the number), or ``"auto"``: one per
-            :data:`~.workers.MIN_SAMPLES_PER_WORKER` samples left to render, up to the usable cores (a worker's
-            start-up costs about 20 samples at 64 × 64). ``1`` renders in this process.
+        workers: Processes rendering at once (the same bytes whatever the number; at most one per sample), or
+            ``"auto"``: one per :data:`~.workers.MIN_SAMPLES_PER_WORKER` samples left to render, up to the usable
+            cores over ``threads`` (a worker's start-up costs about 20 samples at 64 × 64). ``1`` renders in this
+            process. Warnings raised in the other processes are raised again here.
 
     Returns:
         A :class:`GenerateResult`.
 
     Raises:
-        ValueError: a bad shard or ``workers``, or ``out`` holding samples of another configuration (nothing is
-            written).
+        ValueError: a bad shard, ``workers`` or ``limit``, or ``out`` holding samples of another configuration
+            (nothing is written).
         SpectralDataError: an unknown camera (nothing is written).
     """
     from tqdm.auto import tqdm
 
     out = Path(out)
     indices = shard_indices(config.count, *shard)
-    if not (workers == "auto" or (isinstance(workers, int) and not isinstance(workers, bool) and workers >= 1)):
-        raise ValueError(f"workers must be a positive int or 'auto'; got {workers!r}")
+    workers = check_workers(workers)
+    limit = check_count(limit, "limit", minimum=0, optional=True)
     removed = _prepare(out, config, indices)
     old_threads = torch.get_num_threads()
     if threads is not None:
         torch.set_num_threads(int(threads))
+    threads = torch.get_num_threads()  # what every process renders with
     t0 = time.perf_counter()
     complete = [is_complete(out, k) for k in indices]
     skipped = [k for k, c in zip(indices, complete, strict=True) if c]
     todo = [k for k, c in zip(indices, complete, strict=True) if not c][:limit]
-    n_workers = auto_workers(len(todo)) if workers == "auto" else int(workers)
+    n_workers = processes(auto_workers(len(todo), threads) if workers == "auto" else int(workers), len(todo))
     written: list[int] = []
     inaccurate: dict[int, str] = {}
     try:

@@ -1,12 +1,15 @@
 """Rendering and writing samples, in this process or in worker processes, one index at a time.
 
 :func:`~.generator.generate` hands the indices it has to render to :func:`render_indices`, which yields
-``(index, warning)`` as each sample is written. With ``workers > 1`` this process and ``workers − 1`` ``spawn``-ed
-processes render at once, each on ``threads`` torch threads, so a single ``interreflect generate`` uses every core;
-the bytes of each sample are the same as in one process (a sample depends only on its index and the configuration).
+``(index, warning)`` as each sample is written. With ``workers > 1`` this process and up to ``workers − 1``
+``spawn``-ed processes render at once, each on ``threads`` torch threads, so a single ``interreflect generate`` uses
+every core; the bytes of each sample are the same as in one process (a sample depends only on its index and the
+configuration).
 
 A worker costs a start-up of ~3 s (importing torch, colour-science and the compiled kernels), about 20 samples at
 64 × 64: :func:`auto_workers` starts one per :data:`MIN_SAMPLES_PER_WORKER` samples to render, up to the usable cores.
+Workers exit when this process dies (killed included), and the warnings they raise are raised again here, under this
+process's filters.
 """
 
 from __future__ import annotations
@@ -14,18 +17,25 @@ from __future__ import annotations
 import collections
 import multiprocessing
 import os
+import threading
+import warnings
 from collections.abc import Iterator, Sequence
 from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
 from pathlib import Path
+from typing import Any
 
 import torch
 
-from ..errors import AccuracyWarning, collect_warnings
+from .._checks import check_count
+from ..errors import AccuracyWarning, ValueRangeError, collect_warnings
 from .config import GeneratorConfig
 from .sample import render_sample
 from .storage import write_sample
 
-__all__ = ["MIN_SAMPLES_PER_WORKER", "QUEUED_PER_WORKER", "auto_workers", "render_indices", "usable_cores"]
+__all__ = [
+    "MIN_SAMPLES_PER_WORKER", "QUEUED_PER_WORKER", "auto_workers", "check_workers", "processes", "render_indices",
+    "usable_cores",
+]
 
 #: Samples to render per extra worker process that ``workers="auto"`` starts (a worker's start-up ≈ 20 samples).
 MIN_SAMPLES_PER_WORKER = 32
@@ -35,22 +45,50 @@ QUEUED_PER_WORKER = 3
 
 
 def usable_cores() -> int:
-    """CPU cores this process may run on (its affinity mask where the platform has one)."""
+    """CPU cores this process may run on: its affinity mask where the platform has one (a SLURM task's own cores;
+    not a container's CPU quota, which the mask does not show: pass ``workers`` there)."""
     try:
         return len(os.sched_getaffinity(0))
     except AttributeError:  # macOS, Windows
         return os.cpu_count() or 1
 
 
-def auto_workers(todo: int) -> int:
-    """Worker processes for ``todo`` samples: one per :data:`MIN_SAMPLES_PER_WORKER`, at least 1, at most the cores.
+def auto_workers(todo: int, threads: int = 1) -> int:
+    """Processes for ``todo`` samples on ``threads`` torch threads each: one per :data:`MIN_SAMPLES_PER_WORKER`
+    samples, at least 1, at most the usable cores over ``threads``.
 
     Example:
         >>> from torch_interreflect.training.workers import auto_workers
         >>> auto_workers(10)
         1
     """
-    return max(1, min(usable_cores(), todo // MIN_SAMPLES_PER_WORKER))
+    return max(1, min(usable_cores() // max(1, int(threads)), todo // MIN_SAMPLES_PER_WORKER))
+
+
+def check_workers(workers: Any, *, allow_auto: bool = True) -> int | str:
+    """``workers`` as a positive int, or ``"auto"`` (where allowed).
+
+    Raises:
+        ValueRangeError: anything else (a ``ValueError``).
+    """
+    if allow_auto and workers == "auto":
+        return "auto"
+    try:
+        return int(check_count(workers, "workers"))  # type: ignore[arg-type]
+    except ValueRangeError as exc:
+        raise ValueRangeError(f"workers must be a positive int{' or ' + repr('auto') if allow_auto else ''}; got "
+                              f"{workers!r}") from exc
+
+
+def processes(workers: int, count: int) -> int:
+    """Processes that :func:`render_indices` uses for ``count`` samples: ``workers``, at most one per sample.
+
+    Example:
+        >>> from torch_interreflect.training.workers import processes
+        >>> processes(4, 2), processes(2, 0)
+        (2, 1)
+    """
+    return max(1, min(int(workers), int(count)))
 
 
 def _render_and_write(out: Path, config: GeneratorConfig, index: int) -> tuple[int, str | None]:
@@ -61,45 +99,63 @@ def _render_and_write(out: Path, config: GeneratorConfig, index: int) -> tuple[i
     return index, (got[0] if got else None)
 
 
-def _start_worker(threads: int | None) -> None:
-    if threads is not None:
-        torch.set_num_threads(int(threads))
+def _render_in_worker(out: Path, config: GeneratorConfig, index: int) -> tuple[int, str | None, list[tuple]]:
+    """:func:`_render_and_write` in a worker process, with the other warnings it raised, to raise again in the
+    parent (``(message, category, filename, lineno)``)."""
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        k, accuracy = _render_and_write(out, config, index)
+    return k, accuracy, [(str(w.message), w.category, w.filename, w.lineno) for w in caught]
+
+
+def _exit_with_parent() -> None:
+    parent = multiprocessing.parent_process()
+    if parent is not None:
+        parent.join()  # returns when the parent process has ended, however it ended
+        os._exit(1)
+
+
+def _start_worker(threads: int) -> None:
+    torch.set_num_threads(int(threads))
+    # a parent killed by a signal runs no shutdown: without this, its workers would wait for work forever
+    threading.Thread(target=_exit_with_parent, daemon=True, name="ti-parent-watch").start()
 
 
 def render_indices(
     out: Path, config: GeneratorConfig, indices: Sequence[int], *, workers: int = 1, threads: int | None = 1
 ) -> Iterator[tuple[int, str | None]]:
     """Render and write the samples ``indices`` of ``config`` into ``out``, yielding ``(index, warning)`` as each
-    is written (in index order with one worker, in order of completion with more).
+    is written (in the order of ``indices`` in one process, in order of completion with more).
 
     Args:
         out: Output folder (exists).
         config: The generator configuration.
         indices: Sample indices to render.
-        workers: Processes rendering at once, this one included (it renders with the caller's torch threads).
-        threads: Torch threads in each spawned worker process (``None``: torch's default).
+        workers: Processes rendering at once, this one included (it renders with the caller's torch threads, and
+            always the last index); at most one per index (:func:`processes`).
+        threads: Torch threads in each spawned process (``None``: this process's current count).
 
     Raises:
-        ValueError: ``workers`` below 1.
+        ValueRangeError: ``workers`` not a positive int.
         Exception: The first error a sample raised; the samples not yet started are cancelled.
     """
-    if int(workers) < 1:
-        raise ValueError(f"workers must be at least 1; got {workers}")
-    if workers == 1 or len(indices) <= 1:
+    n = processes(int(check_workers(workers, allow_auto=False)), len(indices))
+    if n == 1:
         for k in indices:
             yield _render_and_write(out, config, k)
         return
-    # this process renders too, from the end of the list, while workers - 1 spawned processes start (~3 s) and
-    # take indices from the front, a few at a time
+    # this process renders too, from the end of the list, while the n - 1 spawned processes start (~3 s) and take
+    # indices from the front, a few at a time; the last index always stays here
     ctx = multiprocessing.get_context("spawn")  # fork after torch / OpenMP / numba threads have started can hang
-    helpers = int(workers) - 1
+    helpers = n - 1
     queue = collections.deque(indices)
+    threads = torch.get_num_threads() if threads is None else int(threads)
     with ProcessPoolExecutor(helpers, mp_context=ctx, initializer=_start_worker, initargs=(threads,)) as pool:
         pending: set[Future] = set()
         try:
             while queue or pending:
-                while queue and len(pending) < QUEUED_PER_WORKER * helpers:
-                    pending.add(pool.submit(_render_and_write, out, config, queue.popleft()))
+                while len(queue) > 1 and len(pending) < QUEUED_PER_WORKER * helpers:
+                    pending.add(pool.submit(_render_in_worker, out, config, queue.popleft()))
                 if queue:
                     yield _render_and_write(out, config, queue.pop())
                     done = {f for f in pending if f.done()}
@@ -107,7 +163,10 @@ def render_indices(
                     done, _ = wait(pending, return_when=FIRST_COMPLETED)
                 pending -= done
                 for f in sorted(done, key=lambda f: f.result()[0]):
-                    yield f.result()
+                    k, accuracy, other = f.result()
+                    for message, category, filename, lineno in other:
+                        warnings.warn_explicit(message, category, filename, lineno)
+                    yield k, accuracy
         finally:
             for f in pending:
                 f.cancel()
