@@ -19,6 +19,16 @@ from torch_interreflect.training.storage import read_png, write_png16
 CFG = g.GeneratorConfig(count=5, seed=7, scenes=("v_groove", "box_corner", "cornell", "mesh"), size=(12, 16))
 
 
+@pytest.fixture
+def no_hang():
+    """Tests that start worker processes: a hang ends the test process with tracebacks after 180 s, not the suite."""
+    import faulthandler
+
+    faulthandler.dump_traceback_later(180, exit=True)
+    yield
+    faulthandler.cancel_dump_traceback_later()
+
+
 def _files(root: Path) -> dict[str, bytes]:
     return {str(p.relative_to(root)): p.read_bytes() for p in sorted(root.rglob("*")) if p.is_file()}
 
@@ -359,7 +369,7 @@ def test_solver_accuracy_warnings_come_once_per_run(tmp_path: Path) -> None:
     assert len(accuracy) == 1 and accuracy[0].startswith("refine_illuminant: ") and "of the fit's solves" in accuracy[0]
 
 
-def test_worker_processes_write_the_same_bytes_and_resume(full_run: Path, tmp_path: Path) -> None:
+def test_worker_processes_write_the_same_bytes_and_resume(full_run: Path, tmp_path: Path, no_hang: None) -> None:
     """Two processes (this one and a spawned one) write the files one process writes, the manifest included; a run
     interrupted by ``limit`` resumes with workers; inaccurate solves are reported from either process."""
     first = g.generate(tmp_path, CFG, progress=False, limit=1, workers=2)
@@ -407,7 +417,7 @@ def test_auto_workers_start_one_process_per_32_samples_up_to_the_cores(monkeypat
     assert [workers.processes(w, n) for w, n in ((4, 2), (2, 0), (2, 1), (3, 10))] == [2, 1, 1, 3]
 
 
-def test_an_error_in_a_worker_process_stops_the_run_and_is_raised(tmp_path: Path) -> None:
+def test_an_error_in_a_worker_process_stops_the_run_and_is_raised(tmp_path: Path, no_hang: None) -> None:
     """A sample that cannot be written (its sidecar's name taken by a folder) fails in the spawned process that takes
     it: the run raises that error, does not hang, and marks nothing of it complete."""
     cfg = g.GeneratorConfig(count=5, seed=7, scenes=("v_groove",), size=(8, 8), bounces=(None,))
@@ -420,7 +430,7 @@ def test_an_error_in_a_worker_process_stops_the_run_and_is_raised(tmp_path: Path
 
 
 @pytest.mark.skipif(not Path("/proc/self/status").exists(), reason="reads /proc (Linux)")
-def test_workers_exit_when_their_parent_is_killed(tmp_path: Path) -> None:
+def test_workers_exit_when_their_parent_is_killed(tmp_path: Path, no_hang: None) -> None:
     """A parent killed by SIGKILL runs no shutdown: its spawned workers notice and exit instead of waiting forever."""
     import os
     import signal
@@ -453,3 +463,32 @@ def _proc_field(pid: str, field: str) -> str:
         return Path(f"/proc/{pid}/status").read_text().split(field)[1].split("\n")[0].strip()
     except (OSError, IndexError):
         return "zombie"
+
+
+class _WarningConfig(g.GeneratorConfig):
+    """A configuration that warns, with the process id, each time a sample reads its camera (pickled by reference:
+    spawned workers import it from this module)."""
+
+    def __getattribute__(self, name: str):
+        if name == "camera":
+            import os
+            import warnings
+
+            warnings.warn(f"camera read in process {os.getpid()}", UserWarning, stacklevel=2)
+        return super().__getattribute__(name)
+
+
+def test_warnings_raised_in_worker_processes_are_raised_again_in_the_parent(tmp_path: Path, no_hang: None) -> None:
+    import os
+    import warnings
+
+    from torch_interreflect.training.workers import render_indices
+
+    cfg = _WarningConfig(count=3, seed=7, scenes=("v_groove",), size=(8, 8), bounces=(None,))
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        done = dict(render_indices(tmp_path, cfg, [0, 1, 2], workers=2))
+    assert sorted(done) == [0, 1, 2]
+    pids = {str(w.message).rsplit(" ", 1)[1] for w in caught if issubclass(w.category, UserWarning)}
+    assert str(os.getpid()) in pids  # index 2, rendered here
+    assert pids - {str(os.getpid())}, "no warning came back from the spawned process (indices 0 and 1)"
