@@ -6,7 +6,8 @@ fractions of the fixed-grid visibility estimate; ``"shadows"``: the shadow edges
 ``"moments"``: the Galerkin moments on a polynomial basis), or
 None when numba is missing or disabled
 (``TI_DISABLE_NUMBA=1``): callers then use their torch path. :func:`launch` runs one loop with
-``torch.get_num_threads()`` threads.
+:func:`~torch_interreflect._threads.work_threads` threads (torch's count, or the caller's inside
+:func:`~torch_interreflect._threads.compiled_work`).
 """
 
 from __future__ import annotations
@@ -19,6 +20,8 @@ from functools import cache
 from types import ModuleType
 
 import torch
+
+from .._threads import work_threads
 
 __all__ = ["launch", "loops"]
 
@@ -54,7 +57,8 @@ def loops(stage: str = "quadrature") -> ModuleType | None:
 
 
 def launch(kernel: Callable[..., object], *args: object) -> object:
-    """Call a compiled kernel with ``torch.get_num_threads()`` threads, leaving torch's thread count as it was.
+    """Call a compiled kernel with :func:`~torch_interreflect._threads.work_threads` threads (torch's count outside
+    :func:`~torch_interreflect._threads.compiled_work`), leaving torch's thread count as it was.
 
     numba's OpenMP threading layer shares the OpenMP runtime with torch: setting numba's threads (or launching a
     parallel region) changes what ``torch.get_num_threads()`` returns. Left alone, a user's (or a test worker's)
@@ -66,7 +70,7 @@ def launch(kernel: Callable[..., object], *args: object) -> object:
     prev = torch.get_num_threads()
     with _LAUNCH:
         try:
-            numba.set_num_threads(max(1, min(prev, numba.config.NUMBA_NUM_THREADS)))
+            numba.set_num_threads(max(1, min(work_threads(), numba.config.NUMBA_NUM_THREADS)))
             return kernel(*args)
         finally:
             torch.set_num_threads(prev)

@@ -28,6 +28,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from .._threads import work_threads
 from ..geometry._polygon import bilinear, clip_polygons
 from .compiled import launch, loops
 from .contour import point_polygon_factor
@@ -306,7 +307,7 @@ def grouped_sums(
     bounds[1:] = torch.cumsum(torch.tensor([sel.numel() for _, sel in parts]), 0)
     # numpy, not torch.cat: a torch parallel region right before the launch leaves OpenMP workers spinning on a core
     sel = parts[0][1] if len(parts) == 1 else torch.from_numpy(np.concatenate([_np(sel) for _, sel in parts]))
-    blocks = max(1, min(int(bounds[-1]), 64 * torch.get_num_threads()))
+    blocks = max(1, min(int(bounds[-1]), 64 * work_threads()))
     launch(loops().rule_sums, *(_np(t) for t in (corners, normals, cent, dom, tgt, shift, clip, sel, bounds,
                                                  table[0], table[1], table[2], size)), float(eps), blocks, out.numpy())
 

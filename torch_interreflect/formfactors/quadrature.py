@@ -28,6 +28,7 @@ from tqdm.auto import tqdm
 from .._checks import check_count
 from .._deprecation import renamed_keywords
 from .._sparse import sparse_matrix
+from .._threads import compiled_work
 from ..errors import ValueRangeError
 from ..geometry._polygon import (
     clip_polygons,
@@ -175,12 +176,13 @@ def form_factors(
         rows, cols, vals, info = monte_carlo(scene, rays_per_facet, generator)
     else:
         itemsize = torch.empty(0, dtype=scene.dtype).element_size()
-        dom, tgt, value, areas, info = _quadrature(
-            scene, occlusion, quadrature_tol, adjacent_order, visibility_samples, chunk_points, progress,
-            output=(layout, itemsize), backend=backend, visibility_tol=visibility_tol,
-            visibility_angle=visibility_angle, visibility_jitter=visibility_jitter,
-            visibility_grad_points=visibility_grad_points,
-        )
+        with compiled_work():  # torch's glue on one thread, the compiled loops and rays on the caller's threads
+            dom, tgt, value, areas, info = _quadrature(
+                scene, occlusion, quadrature_tol, adjacent_order, visibility_samples, chunk_points, progress,
+                output=(layout, itemsize), backend=backend, visibility_tol=visibility_tol,
+                visibility_angle=visibility_angle, visibility_jitter=visibility_jitter,
+                visibility_grad_points=visibility_grad_points,
+            )
     out_dtype, dev = scene.dtype, scene.device
     direct = None
     if method == "quadrature":  # dense output: written straight from the pairs where it can be

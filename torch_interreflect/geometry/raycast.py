@@ -2,7 +2,8 @@
 
 Geometry work that is not differentiable: it runs once per scene, on numpy float32 arrays, and its results
 (visibility fractions, lit fractions, hit facets) are cached by the callers. Large batches are split across
-``torch.get_num_threads()`` threads (Embree's queries release the GIL), so every core casts rays.
+:func:`~torch_interreflect._threads.work_threads` threads (torch's count, or the caller's inside
+:func:`~torch_interreflect._threads.compiled_work`; Embree's queries release the GIL), so every core casts rays.
 """
 
 from __future__ import annotations
@@ -12,8 +13,8 @@ from concurrent.futures import ThreadPoolExecutor
 from functools import cache
 
 import numpy as np
-import torch
 
+from .._threads import work_threads
 from .scene import Scene
 
 __all__ = ["RayCaster"]
@@ -34,7 +35,7 @@ os.register_at_fork(after_in_child=_pool.cache_clear)
 
 def _run_split(run, n_rays: int, *arrays: np.ndarray) -> np.ndarray:
     """``run(*arrays)`` over the rays, split into contiguous blocks across threads; results concatenated."""
-    n = min(torch.get_num_threads(), max(1, n_rays // _MIN_RAYS_PER_THREAD))
+    n = min(work_threads(), max(1, n_rays // _MIN_RAYS_PER_THREAD))
     if n <= 1:
         return np.asarray(run(*arrays))
     bounds = np.linspace(0, n_rays, n + 1).astype(np.int64)
