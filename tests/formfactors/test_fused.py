@@ -329,3 +329,25 @@ def test_compiled_loops_keep_the_callers_threads_while_torch_glue_runs_on_one():
         assert torch.equal(one, two) and torch.get_num_threads() == 2
     finally:
         torch.set_num_threads(prev)
+
+
+def test_the_torch_path_keeps_torchs_threads(monkeypatch):
+    """Only the compiled path runs torch's glue on one thread: ``backend="torch"`` and inputs that require grad keep
+    torch's own count (the torch path ran on one core when it did not)."""
+    from torch_interreflect import _threads
+
+    seen = []
+    real = _threads.compiled_work
+
+    def spy():
+        seen.append(True)
+        return real()
+
+    monkeypatch.setattr("torch_interreflect.formfactors.quadrature.compiled_work", spy)
+    scene = ti.scenes.w_shape()
+    ti.form_factors(scene, backend="torch")
+    corners = scene.corners.clone().double().requires_grad_(True)
+    ti.form_factors(ti.Scene.from_polygons(corners), backend="fused")
+    assert seen == []
+    ti.form_factors(scene, backend="fused")
+    assert seen == [True]

@@ -17,6 +17,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import time
 from typing import Any, Literal
 
@@ -38,7 +39,7 @@ from ..geometry._polygon import (
 from ..geometry.scene import Scene
 from .checks import check_row_sums, check_sums, warn_if_wrong_side
 from .compiled import launch, loops
-from .fused import Backend, fan_sums, group_sums, grouped_sums
+from .fused import Backend, fan_sums, group_sums, grouped_sums, resolve_backend
 from .montecarlo import monte_carlo
 from .operator import FormFactors
 from .pairs import SPARSE_DENSITY, PairClasses, classify_pairs, facing_pairs, order_pairs, rule_groups
@@ -176,7 +177,10 @@ def form_factors(
         rows, cols, vals, info = monte_carlo(scene, rays_per_facet, generator)
     else:
         itemsize = torch.empty(0, dtype=scene.dtype).element_size()
-        with compiled_work():  # torch's glue on one thread, the compiled loops and rays on the caller's threads
+        # the compiled path: torch's glue on one thread, the compiled loops and rays on the caller's threads (the
+        # torch path, and inputs that require grad, keep torch's threads)
+        work = compiled_work() if resolve_backend(backend, scene.corners) else contextlib.nullcontext()
+        with work:
             dom, tgt, value, areas, info = _quadrature(
                 scene, occlusion, quadrature_tol, adjacent_order, visibility_samples, chunk_points, progress,
                 output=(layout, itemsize), backend=backend, visibility_tol=visibility_tol,
