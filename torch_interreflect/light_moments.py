@@ -26,6 +26,7 @@ import torch
 from torch import Tensor
 
 from ._checks import check_count
+from ._threads import compiled_work
 from .errors import ShapeError, ValueRangeError
 from .formfactors.basis import facet_rule
 from .formfactors.hemisphere import hemisphere_point_fractions
@@ -219,8 +220,9 @@ def light_moments(
     check_count(sky_samples, "sky_samples")
     check_count(sky_points, "sky_points")
     sc = scene.detach().to(torch.float64).to("cpu")
-    g, flags = _moments(sc, form_factors, light, shadows, int(shadow_order), backfaces, int(sky_samples),
-                        int(sky_points), bool(direction), int(sky_seed), sky)
+    with compiled_work():  # torch's glue on one thread, the compiled loops and rays on the caller's
+        g, flags = _moments(sc, form_factors, light, shadows, int(shadow_order), backfaces, int(sky_samples),
+                            int(sky_points), bool(direction), int(sky_seed), sky)
     return (g, flags) if rough else g
 
 

@@ -399,3 +399,38 @@ def test_resampled_visibility_changes_only_the_occluded_pairs():
                        moment_form_factors(scene, 2, seed=3, visibility_samples=6).matrix)
     with pytest.raises(ValueError, match="resample_visibility needs"):
         resample_visibility(G.truncate(1), seed=1)
+
+
+@pytest.mark.parametrize("threads", [1, 2])
+def test_moments_and_sky_keep_torch_threads_and_bits(threads, monkeypatch):
+    """``moment_form_factors`` and ``light_moments`` run their torch glue on one thread and their compiled loops and
+    rays on the caller's (``_threads.compiled_work``): torch has one thread while their loops launch, its count comes
+    back as it was, and the moments and the sky's ray-cast moments (occluded pairs, escaping rays) are the same bits
+    at 1 and 2 threads."""
+    from torch_interreflect._threads import work_threads
+    from torch_interreflect.formfactors import compiled, hemisphere, moments
+
+    seen = []
+
+    def spy(kernel, *args):
+        seen.append((torch.get_num_threads(), work_threads()))
+        return compiled.launch(kernel, *args)
+
+    monkeypatch.setattr(moments, "launch", spy)
+    monkeypatch.setattr(hemisphere, "launch", spy)
+    scene = ti.geometry.split_at_contacts(ti.scenes.cornell_box(divisions=1, light=False, dtype=torch.float64))[0]
+    prev = torch.get_num_threads()
+    try:
+        torch.set_num_threads(1)
+        K1 = moment_form_factors(scene, 2, quadrature_tol=1e-4)
+        g1 = light_moments(scene, K1, "sky", sky_samples=4, sky_points=4)
+        torch.set_num_threads(threads)
+        seen.clear()
+        K = moment_form_factors(scene, 2, quadrature_tol=1e-4)
+        assert torch.get_num_threads() == threads
+        g = light_moments(scene, K, "sky", sky_samples=4, sky_points=4)
+        assert torch.get_num_threads() == threads
+    finally:
+        torch.set_num_threads(prev)
+    assert len(seen) >= 4 and set(seen) == {(1, threads)}  # the pairs' loops, the rays' set-up, the sky's rays
+    assert K.info["occluded_pairs"] > 0 and torch.equal(K.matrix, K1.matrix) and torch.equal(g, g1)

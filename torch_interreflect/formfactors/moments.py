@@ -43,6 +43,7 @@ import torch
 from torch import Tensor
 
 from .._checks import check_count
+from .._threads import compiled_work
 from ..errors import ValueRangeError
 from ..geometry._polygon import plane_eps
 from ..geometry.raycast import RayCaster
@@ -365,19 +366,20 @@ def moment_form_factors(
     if occlusion not in ("auto", True, False):
         raise ValueRangeError(f"occlusion must be 'auto', True or False; got {occlusion!r}")
     check_count(visibility_samples, "visibility_samples", note=" (rays per side of the target)")
-    kern = _kernel()
-    sc = scene.to(torch.float64).to("cpu").detach()
-    settings = {"degree": int(degree), "quadrature_tol": float(quadrature_tol), "occlusion": occlusion,
-                "visibility_samples": int(visibility_samples)}
-    old_of = None if reuse is None else reuse_map(sc, reuse, settings)
-    setup = _pairs(sc, degree, quadrature_tol, plane_eps(scene), occlusion)
-    basis = facet_basis(sc, degree)
-    acc = np.zeros((setup["dom"].numel(), nb, nb))
-    todo = np.arange(acc.shape[0], dtype=np.int64)
-    if reuse is not None and old_of is not None:
-        todo = reused_sums(setup, reuse[0].info["_sums"][1:], old_of, acc)
-    total = _pair_sums(kern, setup, basis, todo, int(visibility_samples), int(seed), acc)
-    G = _assemble(kern, sc, setup, basis, acc)
+    with compiled_work():  # torch's glue on one thread, the compiled loops and rays on the caller's
+        kern = _kernel()
+        sc = scene.to(torch.float64).to("cpu").detach()
+        settings = {"degree": int(degree), "quadrature_tol": float(quadrature_tol), "occlusion": occlusion,
+                    "visibility_samples": int(visibility_samples)}
+        old_of = None if reuse is None else reuse_map(sc, reuse, settings)
+        setup = _pairs(sc, degree, quadrature_tol, plane_eps(scene), occlusion)
+        basis = facet_basis(sc, degree)
+        acc = np.zeros((setup["dom"].numel(), nb, nb))
+        todo = np.arange(acc.shape[0], dtype=np.int64)
+        if reuse is not None and old_of is not None:
+            todo = reused_sums(setup, reuse[0].info["_sums"][1:], old_of, acc)
+        total = _pair_sums(kern, setup, basis, todo, int(visibility_samples), int(seed), acc)
+        G = _assemble(kern, sc, setup, basis, acc)
     dom, tgt, need = setup["dom"], setup["tgt"], setup["need"]
     kind = torch.from_numpy(setup["pairs"][2])
     occ_facets = torch.zeros(sc.num_facets, dtype=torch.bool)
