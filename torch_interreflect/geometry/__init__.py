@@ -4,11 +4,13 @@
 - :mod:`.scenes`: builders (``v_groove``, ``box_corner``, ``closed_box``, ``w_shape``, ``cornell_box``, ``room``).
 - :mod:`.raycast`: :class:`RayCaster` (Embree, through ``embreex``; imported on first use).
 - :mod:`.contacts`: :func:`split_at_contacts` (split facets where another facet stands on them).
+- :mod:`.sizing`: :func:`subdivide_to` (split every facet into pieces no longer than a length).
 """
 
 from . import scenes
 from .contacts import contact_pairs, split_at_contacts
 from .raycast import RayCaster
 from .scene import Scene, area_average
+from .sizing import subdivide_to
 
-__all__ = ["RayCaster", "Scene", "area_average", "contact_pairs", "scenes", "split_at_contacts"]
+__all__ = ["RayCaster", "Scene", "area_average", "contact_pairs", "scenes", "split_at_contacts", "subdivide_to"]
