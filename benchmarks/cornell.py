@@ -7,8 +7,10 @@ solve (per-material grey reflectances drawn at random; the error is measured on 
 first variant). Two bases: the constant one (``form_factors``, ``lights.sky``, ``solve``) and the quadratic one
 (``moment_form_factors`` of degree 2 with 3 × 3 visibility rays, ``light_moments``, ``solve_moments``) at each of
 the settings :data:`QUADRATIC_SETTINGS`: quadrature tol 1e-5 with 16 × 16 sky directions (the settings ``render``
-starts from) and the cheaper tol 1e-4 and 8 × 8 directions. At a requested error, the cheapest of all our rows that
-reaches it is taken (as Mitsuba's cheapest sample count is). *Mitsuba*: the batched
+starts from) and the cheaper tol 1e-4 and 8 × 8 directions. The quadratic basis also runs on the split box cut to a
+size instead (:func:`~torch_interreflect.geometry.subdivide_to`: the walls cut finer than the blocks' faces) at
+:data:`SIZED_SETTINGS`. At a requested error, the cheapest of all our rows that reaches it is taken (as Mitsuba's
+cheapest sample count is). *Mitsuba*: the batched
 irradiance-meter estimator (multijitter) of the 16 facets at a range of samples per facet, warm kernels; a variant
 is one more render (its scene build is not counted). Errors: relative RMS over the 16 facets against the cached
 converged references ``cornell_sky_r2`` / ``cornell_sky_r9``. Mitsuba's time at an error is interpolated log-log
@@ -27,7 +29,7 @@ import numpy as np
 import torch
 
 import torch_interreflect as ti
-from torch_interreflect.geometry import area_average
+from torch_interreflect.geometry import area_average, split_at_contacts, subdivide_to
 
 from ._common import mitsuba as mr
 from ._common.ours import split_and_subdivide
@@ -37,8 +39,10 @@ from .speed_vs_error import time_at_error
 
 RESULTS = Path(__file__).resolve().parent / "results"
 VARIANTS = 100
-#: (quadrature tol, sky directions per axis) of the quadratic rows
+#: (quadrature tol, sky directions per axis) of the quadratic rows on a uniform subdivision
 QUADRATIC_SETTINGS = ((1e-5, 16), (1e-4, 16), (1e-5, 8), (1e-4, 8))
+#: the same on a subdivision to a size
+SIZED_SETTINGS = ((1e-4, 16), (1e-4, 8), (1e-3, 8))
 
 
 def ours(name: str, ks: list[int]) -> list[dict]:
@@ -74,8 +78,23 @@ def ours(name: str, ks: list[int]) -> list[dict]:
     return rows
 
 
-def ours_quadratic(name: str, ks: list[int]) -> list[dict]:
-    """The quadratic basis on the same split and subdivided box (see the module docstring)."""
+def quadratic_meshes(scene, ks: list[int], sizes: list[float]) -> list[tuple[str, object, torch.Tensor, tuple]]:
+    """The meshes of the quadratic rows: ``(label, fine, user, settings)``: the box split at contacts, then
+    ``subdivide(k)`` (every piece ``k × k``, at :data:`QUADRATIC_SETTINGS`) or ``subdivide_to(h)`` (every piece cut
+    to edges of at most ``h`` metres, at :data:`SIZED_SETTINGS`)."""
+    out = []
+    for k in ks:
+        fine, top = split_and_subdivide(scene, k)
+        out.append((f"split + subdivide({k})", fine, top, QUADRATIC_SETTINGS))
+    split, top = split_at_contacts(scene)
+    for h in sizes:
+        fine, parent = subdivide_to(split, h)
+        out.append((f"split + subdivide_to({h:g} m)", fine, top[parent], SIZED_SETTINGS))
+    return out
+
+
+def ours_quadratic(name: str, ks: list[int], sizes: list[float]) -> list[dict]:
+    """The quadratic basis on the split box, subdivided uniformly or to a size (see the module docstring)."""
     from torch_interreflect.formfactors.moments import moment_form_factors
     from torch_interreflect.light_moments import light_moments
     from torch_interreflect.solver.moments import facet_averages, solve_moments
@@ -89,9 +108,8 @@ def ours_quadratic(name: str, ks: list[int]) -> list[dict]:
     grey = torch.rand(VARIANTS, len(scene.material_names), generator=gen, dtype=torch.float64) * 0.8 + 0.1
     grey[0] = r
     rows = []
-    for k in ks:
-        fine, top = split_and_subdivide(scene, k)
-        for tol, sky in QUADRATIC_SETTINGS:
+    for label, fine, top, settings in quadratic_meshes(scene, ks, sizes):
+        for tol, sky in settings:
 
             def kernel(fine=fine, tol=tol, sky=sky):
                 K = moment_form_factors(fine, 2, quadrature_tol=tol)
@@ -104,8 +122,7 @@ def ours_quadratic(name: str, ks: list[int]) -> list[dict]:
             ec = area_average(facet_averages(c1), top, fine.areas, scene.num_facets).numpy().reshape(-1)
             ev = area_average(facet_averages(c_all[0]), top, fine.areas, scene.num_facets).numpy().reshape(-1)
             assert np.allclose(ec, ev, rtol=1e-6)  # the batched solve's first variant is the single solve
-            rows.append({"scene": name, "who": "ours",
-                         "setting": f"split + subdivide({k}), quadratic, tol {tol:g}, sky {sky}²",
+            rows.append({"scene": name, "who": "ours", "setting": f"{label}, quadratic, tol {tol:g}, sky {sky}²",
                          "facets": fine.num_facets, "error": rel_errors(ec, e_ref)[0], "one": t_kernel + t_one,
                          "kernel": t_kernel, "solve": t_one, "variants": t_kernel + t_all})
             print(rows[-1], flush=True)
@@ -175,7 +192,9 @@ def write(path: Path, rows: list[dict]) -> None:
         f"*{VARIANTS} variants*: kernel + light + one batched solve of {VARIANTS} reflectance draws (ours),",
         f"{VARIANTS} renders (Mitsuba, multijitter sampler). Ours on the constant basis, or on the quadratic one",
         "(`quadratic`: degree-2 moments, 3 × 3 visibility rays, at quadrature tol 1e-5 or 1e-4 and 16² or 8² sky",
-        "directions).",
+        "directions) on the box split at its contacts and then subdivided: uniformly (`subdivide(k)`: every piece",
+        "k × k) or to a size (`subdivide_to(h)`: every piece cut until its edges are at most h metres; there also",
+        "at tol 1e-3).",
         "*Mitsuba at equal error*: its time interpolated at our error (`t ∝ e⁻²` below its smallest measured error).",
         "",
         f"| scene | who | setting | facets | error | one | {VARIANTS} variants | Mitsuba one at equal error | "
@@ -210,10 +229,11 @@ def main(argv: list[str] | None = None) -> None:
     torch.set_default_dtype(torch.float64)
     ks = [2, 4] if args.quick else [2, 4, 6, 8]
     kq = [1, 2] if args.quick else [1, 2, 3, 4]
+    sizes = [0.4, 0.2] if args.quick else [0.6, 0.4, 0.3, 0.2, 0.15, 0.1]
     spps = [256, 1024, 4096, 16384] if args.quick else [256, 1024, 4096, 16384, 65536, 262144]
     rows = []
     for name in ("cornell_sky_r9", "cornell_sky_r2"):
-        rows += ours(name, ks) + ours_quadratic(name, kq) + mitsuba(name, spps)
+        rows += ours(name, ks) + ours_quadratic(name, kq, sizes) + mitsuba(name, spps)
     write(RESULTS / ("cornell_quick.md" if args.quick else "cornell.md"), rows)
 
 
