@@ -40,7 +40,7 @@ from .geometry.raycast import RayCaster
 from .geometry.scene import Scene
 from .lights import lit_fraction, shadow_candidates, sun_direction
 
-__all__ = ["ROWS_VARIANCE_MARGIN", "SkyRays", "light_is_rough", "light_moments", "sky_rays", "sky_weights"]
+__all__ = ["SkyRays", "light_is_rough", "light_moments", "sky_rays", "sky_weights"]
 
 
 def _project(K: MomentFormFactors, facets: Tensor, points: Tensor, weights: Tensor, values: Tensor) -> Tensor:
@@ -154,32 +154,21 @@ def sky_rays(scene: Scene, form_factors: MomentFormFactors, *, backfaces: Litera
     return SkyRays(escape_ids, escape, back_ids, back, escape_back, samples * samples * points * points)
 
 
-#: Factor on the binomial bound of the rows' variance in :func:`sky_weights`. The bound counts samples, not the
-#: kernel's spread over them: on the Cornell box's 50 pieces it is 0.94 times the variance measured over 24 replicas
-#: (geometric mean) but 0.06 times it at the 10th percentile, and the facets it underestimates get too much of the
-#: noisier estimate. With 1 the weighting was 5 % worse than the escaping rays alone at r = 0.2 on 65–79 pieces (RMS
-#: over 4 seeds); with 2 it is better on all ten cells of the docstring's measurement, with 4 better at r = 0.2 but
-#: 1.3–1.5× worse than 2 at r = 0.9.
-ROWS_VARIANCE_MARGIN = 2.0
-
-
 def sky_weights(K: MomentFormFactors, rays: SkyRays) -> Tensor:
     """The weight ``w [k]`` of the escaping rays' estimate of the open part on the facets ``rays.escape_ids``; the
     rows' estimate ``1 − Σ_j F(x → j) − b(x)`` gets ``1 − w``. Both are unbiased; ``w = V_rows / (V_escape + V_rows)``
     weights them by the inverse of their variances: ``V_rows`` the binomial bound of the moments' ray-cast visibility
-    (:func:`~torch_interreflect.formfactors.moment_noise.row_variance`) times :data:`ROWS_VARIANCE_MARGIN`,
-    ``V_escape = p (1 − p) / n`` for ``n`` rays
+    (:func:`~torch_interreflect.formfactors.moment_noise.row_variance`), ``V_escape = p (1 − p) / n`` for ``n`` rays
     per facet and an open fraction ``p`` of ``1 − Σ_j F`` (the moments alone, so that the light stays affine in the
     rays). Escaping rays win on dark, enclosed facets (``p`` small); the rows where few pairs are partly blocked.
-    On the Cornell box under the sky (split at contacts, cut to 0.4 to 0.1 m: 65 to 434 pieces; 8 × 8 sky rays per
-    axis, 3 × 3 visibility rays), RMS over 4 seeds of the error from Mitsuba: 2.2–3.1× lower than the escaping rays
-    alone at r = 0.9 (0.55 % → 0.22 % at 65 pieces, 0.20 % → 0.064 % at 267), 1.1–1.45× lower at r = 0.2 (0.96 % →
-    0.87 %, 0.29 % → 0.22 %). The rows alone are far worse on the dark facets (0.93 % against 0.32 % at r = 0.2, 267
-    pieces, one seed). ``1`` (escaping rays alone) where the variance of the rows is not known.
+    On the Cornell box under the sky (split at contacts, cut to 0.15 m: 267 pieces; 8 × 8 rays per axis, 3 × 3
+    visibility rays) the RMS error from Mitsuba fell from 0.32 % / 0.24 % with escaping rays alone to 0.19 % / 0.058 %
+    (r = 0.2 / 0.9); the rows alone gave 0.93 % / 0.057 %. Over 4 seeds at 65 to 267 pieces: 2.6–3.5× lower at
+    r = 0.9, 1.2× lower to 5 % higher at r = 0.2. ``1`` (escaping rays alone) where the variance of the rows is not
+    known.
     """
     k = rays.escape_ids.numel()
     var_rows = row_variance(K)
-    var_rows = None if var_rows is None else ROWS_VARIANCE_MARGIN * var_rows
     if var_rows is None or rays.escape_back is None or rays.rays <= 0:
         return torch.ones(k, dtype=torch.float64)
     F, nb = K.num_facets, K.size

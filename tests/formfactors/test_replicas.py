@@ -82,8 +82,8 @@ def test_sky_replicas_and_their_mean(cornell):
 def test_the_replicas_spread_measures_their_error(cornell):
     """Half the change between two replicas is the RMS error of their mean: on the Cornell box's pieces (8 points ×
     8 directions per axis; reference: the mean of two replicas at 23 × 23, weighted against the rows as 8 × 8 rays
-    are), for the pairs of seeds (0, k) that the planner draws, k = 1..8, measured 0.55–1.86 times the error per pair,
-    geometric mean 1.03 on the sky's moments and 0.81 / 0.99 on the solved outputs at r = 0.9 / 0.2; the pieces with
+    are), for the pairs of seeds (0, k) that the planner draws, k = 1..8, measured 0.53–1.85 times the error per pair,
+    geometric mean 1.02 on the sky's moments and 0.81 / 0.99 on the solved outputs at r = 0.9 / 0.2; the pieces with
     under 5 % of the most sky left out."""
     scene, K = cornell
     # the same estimator with little ray noise: two replicas at 23 × 23, weighted against the rows as 8 × 8 rays are
