@@ -9,9 +9,8 @@ of :func:`~torch_interreflect.formfactors.moment_form_factors` (``E0[(i, a)]`` =
 - ``"sky"``: ``g_a = π mean_i(ψ_a · open)`` with ``open(x) = 1 − Σ_j F(x → j) − b(x)``; the first part is exact from
   the moments (``Σ_j G[(i, a), (j, 0)]``, also where rows rest on the moments' unbiased ray-cast visibility); where
   other facets' backs may be in view, ``b`` comes from back-hitting cosine-weighted rays
-  (:func:`~torch_interreflect.formfactors.hemisphere.hemisphere_point_fractions`). On facets whose rows are ray cast
-  and that may see a back, the same rays also count the escaping ones, a second unbiased estimate of the open part,
-  and the two are weighted by the inverse of their variances (:func:`sky_weights`).
+  (:func:`~torch_interreflect.formfactors.hemisphere.hemisphere_point_fractions`), or, on facets whose rows are
+  ray cast, the whole open part from escaping rays (both sides of every facet block the sky).
 - an area light (a mask ``[F]`` or a material name, radiance ``L``): ``g_a = π Σ_{j ∈ light} G[(i, a), (j, 0)]``.
 - a factor ``[F]`` per facet: constant over each facet, ``g = (g_i, 0, …)``.
 """
@@ -31,7 +30,6 @@ from ._threads import compiled_work
 from .errors import ShapeError, ValueRangeError
 from .formfactors.basis import facet_rule
 from .formfactors.hemisphere import hemisphere_point_fractions
-from .formfactors.moment_noise import row_variance
 from .formfactors.moments import MomentFormFactors
 from .formfactors.pairs import facing_pairs
 from .formfactors.visibility import blocker_candidates
@@ -40,7 +38,7 @@ from .geometry.raycast import RayCaster
 from .geometry.scene import Scene
 from .lights import lit_fraction, shadow_candidates, sun_direction
 
-__all__ = ["SkyRays", "light_is_rough", "light_moments", "sky_rays", "sky_weights"]
+__all__ = ["SkyRays", "light_is_rough", "light_moments", "sky_rays"]
 
 
 def _project(K: MomentFormFactors, facets: Tensor, points: Tensor, weights: Tensor, values: Tensor) -> Tensor:
@@ -75,18 +73,14 @@ def _sun(sc: Scene, K: MomentFormFactors, d: Tensor, shadows: Literal["auto"] | 
 @dataclass
 class SkyRays:
     """The ray-cast part of the sky's moments: on ``escape_ids`` the open part's moments ``[k, nb]`` counted from
-    escaping rays and ``escape_back``, the back coverage's from the same rays; on ``back_ids`` the back coverage's
-    moments ``[k', nb]`` from back-hitting rays (float64, CPU; :func:`sky_rays`); ``rays`` per facet of one replica
-    (the weights of :func:`sky_weights` use it, the mean of replicas too). Estimates made with different ``seed`` are
-    independent replicas: :meth:`mean` averages two (for given moments the sky's are affine in them, so the light of
-    the mean is the mean of the lights)."""
+    escaping rays, on ``back_ids`` the back coverage's moments ``[k', nb]`` from back-hitting rays (float64, CPU;
+    :func:`sky_rays`). Estimates made with different ``seed`` are independent replicas: :meth:`mean` averages two
+    (the sky's moments are affine in them, so the light of the mean is the mean of the lights)."""
 
     escape_ids: Tensor
     escape: Tensor
     back_ids: Tensor
     back: Tensor
-    escape_back: Tensor | None = None
-    rays: int = 0
 
     def mean(self, other: SkyRays) -> SkyRays:
         """The average of two replicas on the same facets.
@@ -98,18 +92,15 @@ class SkyRays:
             raise ValueError("SkyRays.mean needs two replicas on the same facets (the same moments' leaves); got "
                              f"{self.escape_ids.numel()}/{self.back_ids.numel()} and "
                              f"{other.escape_ids.numel()}/{other.back_ids.numel()} escape/back facets that differ")
-        eb = None if self.escape_back is None or other.escape_back is None else 0.5 * (
-            self.escape_back + other.escape_back)
         return SkyRays(self.escape_ids, 0.5 * (self.escape + other.escape), self.back_ids,
-                       0.5 * (self.back + other.back), eb, self.rays)
+                       0.5 * (self.back + other.back))
 
 
 def sky_rays(scene: Scene, form_factors: MomentFormFactors, *, backfaces: Literal["auto"] | bool = "auto",
              samples: int = 16, points: int = 8, seed: int = 0) -> SkyRays:
     """The sky's ray-cast part on the facets where the moments' row sums do not give the open part: where some
-    facet's back may be in view (``backfaces``), on facets whose rows are ray cast the open part from escaping rays
-    and the back coverage from the same rays (weighted against the rows by :func:`sky_weights`), and elsewhere the
-    back coverage from back-hitting rays (both sides of every facet block the sky).
+    facet's back may be in view (``backfaces``), the whole open part from escaping rays on facets whose rows are ray
+    cast, and elsewhere the back coverage from back-hitting rays (both sides of every facet block the sky).
 
     Args:
         scene: The scene of the moments.
@@ -142,42 +133,15 @@ def sky_rays(scene: Scene, form_factors: MomentFormFactors, *, backfaces: Litera
     caster = RayCaster(sc) if escape_ids.numel() or back_ids.numel() else None
     escape = torch.zeros(0, K.size, dtype=torch.float64)
     back = torch.zeros(0, K.size, dtype=torch.float64)
-    escape_back = escape.clone()
     if escape_ids.numel():
-        h = hemisphere_point_fractions(sc, escape_ids, samples=samples, points=points, caster=caster, seed=seed)
+        h = hemisphere_point_fractions(sc, escape_ids, samples=samples, points=points, back=False, caster=caster,
+                                       seed=seed)
         escape = _project(K, escape_ids, h["points"], h["weights"], h["escape"])
-        escape_back = _project(K, escape_ids, h["points"], h["weights"], h["back"])
     if back_ids.numel():
         h = hemisphere_point_fractions(sc, back_ids, samples=samples, points=points, escape=False, caster=caster,
                                        seed=seed)
         back = _project(K, back_ids, h["points"], h["weights"], h["back"])
-    return SkyRays(escape_ids, escape, back_ids, back, escape_back, samples * samples * points * points)
-
-
-def sky_weights(K: MomentFormFactors, rays: SkyRays) -> Tensor:
-    """The weight ``w [k]`` of the escaping rays' estimate of the open part on the facets ``rays.escape_ids``; the
-    rows' estimate ``1 − Σ_j F(x → j) − b(x)`` gets ``1 − w``. Both are unbiased; ``w = V_rows / (V_escape + V_rows)``
-    weights them by the inverse of their variances: ``V_rows`` the binomial bound of the moments' ray-cast visibility
-    (:func:`~torch_interreflect.formfactors.moment_noise.row_variance`), ``V_escape = p (1 − p) / n`` for ``n`` rays
-    per facet and an open fraction ``p`` of ``1 − Σ_j F`` (the moments alone, so that the light stays affine in the
-    rays). Escaping rays win on dark, enclosed facets (``p`` small); the rows where few pairs are partly blocked.
-    On the Cornell box under the sky (split at contacts, cut to 0.15 m: 267 pieces; 8 × 8 rays per axis, 3 × 3
-    visibility rays) the RMS error from Mitsuba fell from 0.32 % / 0.24 % with escaping rays alone to 0.19 % / 0.058 %
-    (r = 0.2 / 0.9); the rows alone gave 0.93 % / 0.057 %. Over 4 seeds at 65 to 267 pieces: 2.6–3.5× lower at
-    r = 0.9, 1.2× lower to 5 % higher at r = 0.2. ``1`` (escaping rays alone) where the variance of the rows is not
-    known.
-    """
-    k = rays.escape_ids.numel()
-    var_rows = row_variance(K)
-    if var_rows is None or rays.escape_back is None or rays.rays <= 0:
-        return torch.ones(k, dtype=torch.float64)
-    F, nb = K.num_facets, K.size
-    G = K.matrix.detach().to(torch.float64).cpu().reshape(F, nb, F, nb)
-    p = (1.0 - G[rays.escape_ids, 0, :, 0].sum(1)).clamp(0.0, 1.0)
-    var_escape = p * (1.0 - p) / rays.rays
-    vr = var_rows[rays.escape_ids]
-    total = var_escape + vr
-    return torch.where(total > 0, vr / torch.where(total > 0, total, 1.0), torch.ones_like(total))
+    return SkyRays(escape_ids, escape, back_ids, back)
 
 
 def _sky(K: MomentFormFactors, rays: SkyRays) -> Tensor:
@@ -186,10 +150,7 @@ def _sky(K: MomentFormFactors, rays: SkyRays) -> Tensor:
     covered = G.reshape(F, nb, F, nb)[:, :, :, 0].sum(2)  # mean_i(ψ_a Σ_j F(x → j))
     g = -covered
     g[:, 0] += 1.0
-    if rays.escape_ids.numel():
-        w = sky_weights(K, rays)[:, None]
-        rows = g[rays.escape_ids] - (rays.escape_back if rays.escape_back is not None else 0.0)
-        g[rays.escape_ids] = w * rays.escape + (1.0 - w) * rows
+    g[rays.escape_ids] = rays.escape
     g[rays.back_ids] -= rays.back
     return math.pi * g
 
