@@ -68,7 +68,7 @@ def subdivide_to(scene: Scene, size: float) -> tuple[Scene, Tensor]:
 
     Args:
         scene: The scene.
-        size: Longest edge of a piece, in metres (> 0). A facet already no longer stays whole.
+        size: Longest edge of a piece, in metres (> 0). A facet whose edges are within it stays whole.
 
     Returns:
         ``(fine, parent)`` as :meth:`Scene.subdivide` returns them: ``parent[j]`` is the facet of ``scene`` that
