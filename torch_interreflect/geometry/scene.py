@@ -20,7 +20,7 @@ from ..errors import ShapeError
 from .checks import check_facets
 from .duplicates import resolve_duplicates
 
-__all__ = ["Scene", "area_average"]
+__all__ = ["Scene", "area_average", "split_quads"]
 
 def _as_tensor(x: Any, name: str, dtype: torch.dtype | None = None) -> Tensor:
     if isinstance(x, Tensor):
@@ -367,21 +367,12 @@ class Scene:
         F = c.shape[0]
         if k == 1:
             return self, torch.arange(F, device=dev)
-        s = torch.linspace(0, 1, k + 1, device=dev, dtype=dt)
         quad_idx = torch.nonzero(~self._is_triangle).reshape(-1)
         tri_idx = torch.nonzero(self._is_triangle).reshape(-1)
         out_corners = torch.empty(F, k * k, 4, 3, device=dev, dtype=dt)
         out_tri = torch.zeros(F, k * k, dtype=torch.bool, device=dev)
         if quad_idx.numel():
-            q = c[quad_idx]  # [Q, 4, 3]
-            a, b, cc, d = (x[:, None, None, :] for x in q.unbind(1))
-            u = s[None, :, None, None]
-            v = s[None, None, :, None]
-            grid = (1 - u) * (1 - v) * a + u * (1 - v) * b + u * v * cc + (1 - u) * v * d  # [Q, k+1, k+1, 3]
-            sub = torch.stack(
-                [grid[:, :-1, :-1], grid[:, 1:, :-1], grid[:, 1:, 1:], grid[:, :-1, 1:]], dim=3
-            )  # [Q, k, k, 4, 3]
-            out_corners[quad_idx] = sub.reshape(-1, k * k, 4, 3)
+            out_corners[quad_idx] = split_quads(c[quad_idx], k, k)
         if tri_idx.numel():
             t = c[tri_idx, :3]  # [T, 3, 3]
             a, b, cc = t.unbind(1)
@@ -458,6 +449,21 @@ class Scene:
         faces = np.arange(len(verts)).reshape(-1, 3)
         mesh = trimesh.Trimesh(verts, faces, process=False)
         return mesh, owner
+
+
+def split_quads(corners: Tensor, ku: int, kv: int) -> Tensor:
+    """Quads split ``ku × kv`` along their edges ``0→1`` and ``0→3`` (bilinear; children ``iu·kv + iv``, corners in
+    order). Differentiable.
+
+    Shape:
+        - corners: ``[Q, 4, 3]``; output: ``[Q, ku·kv, 4, 3]``
+    """
+    su = torch.linspace(0, 1, ku + 1, dtype=corners.dtype, device=corners.device)[None, :, None, None]
+    sv = torch.linspace(0, 1, kv + 1, dtype=corners.dtype, device=corners.device)[None, None, :, None]
+    a, b, cc, d = (x[:, None, None, :] for x in corners.unbind(1))
+    grid = (1 - su) * (1 - sv) * a + su * (1 - sv) * b + su * sv * cc + (1 - su) * sv * d  # [Q, ku+1, kv+1, 3]
+    sub = torch.stack([grid[:, :-1, :-1], grid[:, 1:, :-1], grid[:, 1:, 1:], grid[:, :-1, 1:]], dim=3)
+    return sub.reshape(corners.shape[0], ku * kv, 4, 3)
 
 
 def _normals(c: Tensor) -> Tensor:

@@ -17,7 +17,7 @@ import torch
 from torch import Tensor
 
 from ..errors import ValueRangeError
-from .scene import Scene
+from .scene import Scene, split_quads
 
 __all__ = ["pieces_per_side", "subdivide_to"]
 
@@ -50,16 +50,6 @@ def pieces_per_side(scene: Scene, size: float) -> tuple[Tensor, Tensor]:
     longest = edge.amax(1)
     kt = torch.ceil(longest / size * (1 - 1e-9)).clamp_min(1).long()
     return torch.where(tri, kt, ku), torch.where(tri, kt, kv)
-
-
-def _quads(c: Tensor, ku: int, kv: int) -> Tensor:
-    """``[Q, ku·kv, 4, 3]``: the quads ``c [Q, 4, 3]`` split ``ku × kv`` (bilinear, corners in order)."""
-    su = torch.linspace(0, 1, ku + 1, dtype=c.dtype, device=c.device)[None, :, None, None]
-    sv = torch.linspace(0, 1, kv + 1, dtype=c.dtype, device=c.device)[None, None, :, None]
-    a, b, cc, d = (x[:, None, None, :] for x in c.unbind(1))
-    grid = (1 - su) * (1 - sv) * a + su * (1 - sv) * b + su * sv * cc + (1 - su) * sv * d  # [Q, ku+1, kv+1, 3]
-    sub = torch.stack([grid[:, :-1, :-1], grid[:, 1:, :-1], grid[:, 1:, 1:], grid[:, :-1, 1:]], dim=3)
-    return sub.reshape(c.shape[0], ku * kv, 4, 3)
 
 
 def subdivide_to(scene: Scene, size: float) -> tuple[Scene, Tensor]:
@@ -103,7 +93,7 @@ def subdivide_to(scene: Scene, size: float) -> tuple[Scene, Tensor]:
             pieces.append(sub.corners)
             n = u * u
         else:
-            pieces.append(_quads(c[idx], u, v).reshape(-1, 4, 3))
+            pieces.append(split_quads(c[idx], u, v).reshape(-1, 4, 3))
             n = u * v
         owners.append(idx.repeat_interleave(n))
         is_tri.append(torch.full((idx.numel() * n,), bool(t), dtype=torch.bool, device=c.device))
