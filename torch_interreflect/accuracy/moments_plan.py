@@ -21,9 +21,9 @@ box under uniform light at 1e-3: estimated 0.14 %, actual 0.38 %). On such scene
 rough leaf found by the light's own shadow points) the planner estimates by *halving* instead: the first level is
 solved, every leaf is split in four and solved again, and a user facet's estimate is :data:`Q_HALVING` times the
 change of its output when its leaves were last split; the facets carrying the excess are split again. On the
-Cornell box under a sky at 1e-2 this reaches 0.064 % / 0.26 % from Mitsuba (r = 0.9 / 0.2) with 236 leaves in 7.8 s /
-3.4 s, estimated 0.68 % / 0.95 % (the constant basis took 4,448 leaves and 28 s for 0.30 % at r = 0.9, and warned
-at r = 0.2 with an actual 3.4 %).
+Cornell box under a sky at 1e-2 this reaches 0.44 % / 0.30 % from Mitsuba (r = 0.9 / 0.2) with 200 / 212 leaves in
+1.4 s / 1.6 s, estimated 0.82 % / 0.87 % (the constant basis took 4,448 leaves and 28 s for 0.30 % at r = 0.9, and
+warned at r = 0.2 with an actual 3.4 %).
 
 Rays (pairs that a third facet could block, and the sky's open part on their leaves where a facet's back may be in
 view) are sampled. At the last step both are drawn again at the same counts with other seeds (replicas,
@@ -98,12 +98,18 @@ Q_LINEAR = 0.3
 
 
 #: The estimate of a user facet's error where the light is rough (``halving``): this times the change of its output
-#: when its leaves were last split in four (and at least this times its change when a neighbour's were), that is
-#: first-order Richardson: the error at least halving with the leaves' size. Measured on the Cornell box and the
-#: open room under the sky (r = 0.9 and 0.2, 50 to 800 leaves of degree 2, against Mitsuba) the error after a split
-#: is 0.10–0.55 of that change; with 0.6 the Cornell box at r = 0.2 and 2e-3 stopped at 488 leaves, estimated
-#: 0.20 % for an actual 0.29 % (with 1: 1,340 leaves, 0.18 % for 0.13 %).
-Q_HALVING = 1.0
+#: when its leaves were last split in four (and at least this times its change when a neighbour's were): the
+#: error falling at least to a third with the leaves' size (order 2, Richardson's ``1 / (2² − 1)``), with a margin
+#: of 1.5. On the accuracy benchmark's 12 sky-lit cases (the Cornell box at 1e-2 … 1e-3 and the open room at 1e-2
+#: and 5e-3, r = 0.9 and 0.2, 200–1,448 leaves) the error against Mitsuba is 0.18–0.84 of the whole estimate with
+#: 0.5, and no request is missed without a warning; with 1 (first-order Richardson, the value before; the
+#: benchmark's run before) the same cases took 1.2× the time in all (485 s against 416 s; r = 0.9 / 0.2: the
+#: Cornell box at 1e-2 4.4 s / 1.9 s against 1.4 s / 1.6 s, for 0.064 % / 0.26 % against 0.44 % / 0.30 %; at 2e-3
+#: 129 s / 96 s against 47 s / 26 s); only at 1e-3,
+#: where both warn, is 0.5 slower (146 s / 129 s against 69 s / 83 s: its discretisation fits, so the rays grow
+#: to their most). (An older planner, before the replicas, had stopped the Cornell box at r = 0.2 and 2e-3 with
+#: 0.6 at an estimated 0.20 % for 0.29 %; this one stops at 440 leaves, estimated 0.18 %, for 0.089 %.)
+Q_HALVING = 0.5
 
 #: Share of the request left to the discretisation where the light is rough (``halving``): the rest goes to the
 #: ray-cast parts, which are large there (the Cornell box and the room at 5e-3: 24 s and 68 s with 0.7, against
