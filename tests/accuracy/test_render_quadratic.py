@@ -104,8 +104,19 @@ def _stored(name: str) -> tuple[ti.Scene, dict, torch.Tensor]:
     return scene, spec, torch.from_numpy(np.load(refs / f"{name}.npz")["irradiance"].astype(np.float64))
 
 
+def _count_light_checks(monkeypatch) -> list:
+    """Calls of the constant planner's second cast of the sky's rays (``light_check``), recorded."""
+    import sys
+
+    refine_module = sys.modules["torch_interreflect.accuracy.refine"]
+    calls: list = []
+    real = refine_module.light_check
+    monkeypatch.setattr(refine_module, "light_check", lambda *a, **k: calls.append(1) or real(*a, **k))
+    return calls
+
+
 @pytest.mark.parametrize("name", ["cornell_sky_r9", "cornell_sky_r2"])
-def test_the_cornell_box_under_a_sky_meets_the_request(name):
+def test_the_cornell_box_under_a_sky_meets_the_request(name, monkeypatch):
     """Against the stored converged Mitsuba reference (noise 0.02 %): the sky through blockable pairs and the blocks'
     contacts make the light rough, so ``auto`` plans by halving. Measured at 1e-2: 0.44 % (r = 0.9) and 0.30 %
     (r = 0.2) from Mitsuba in 200 and 212 leaves, estimated 0.82 % and 0.87 % (the constant basis had taken 4,448
@@ -113,13 +124,30 @@ def test_the_cornell_box_under_a_sky_meets_the_request(name):
     scene, spec, reference = _stored(name)
     level = torch.full((1,), spec["light"]["radiance"], dtype=D)
     r = torch.full((scene.num_facets,), spec["reflectance"], dtype=D)
+    checks = _count_light_checks(monkeypatch)
     with warnings.catch_warnings():
         warnings.simplefilter("error", AccuracyWarning)
         out = ti.render(scene, r, "sky", level, wavelengths=WL, accuracy=1e-2)
     rep = out.report
     actual = float(_rel(out.irradiance[:, 0], reference).square().mean().sqrt())
+    assert not checks  # the constant basis's first look, a-priori 39-50 % off, casts the sky once, not twice
     assert rep.degree == 2 and rep.reached and rep.leaves <= 250
     assert actual <= 6e-3 and actual <= rep.estimated <= 1e-2
+
+
+def test_a_first_look_that_meets_the_request_is_the_constant_plan(monkeypatch):
+    """The open room under a sky (r = 0.2) at 0.2: the constant basis on its pieces already meets the request
+    (a-priori 7.7 %), so ``auto`` keeps that first look: its sky checked by a second cast, as the constant plan's,
+    and the same plan bit for bit."""
+    scene, spec, _ = _stored("room_sky_r2")
+    level = torch.full((1,), spec["light"]["radiance"], dtype=D)
+    r = torch.full((scene.num_facets,), spec["reflectance"], dtype=D)
+    checks = _count_light_checks(monkeypatch)
+    auto = ti.accuracy.plan(scene, r, "sky", level, wavelengths=WL, accuracy=0.2)
+    assert len(checks) == 1 and auto.degree == 0 and auto.report.reached and auto.report.parts["light"] > 0
+    const = ti.accuracy.plan(scene, r, "sky", level, wavelengths=WL, accuracy=0.2, basis="constant", max_iterations=0)
+    assert len(checks) == 2 and const.report.parts == auto.report.parts
+    assert torch.equal(auto.apply(r, level).irradiance, const.apply(r, level).irradiance)
 
 
 def test_rays_that_would_grow_lower_the_share_instead():

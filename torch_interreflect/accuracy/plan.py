@@ -294,23 +294,33 @@ def plan(
     if quadratic and basis == "auto":
         # one solve on the constant basis, with its a-priori estimate, is cheaper still where it already meets the
         # request (dark scenes: 30 ms against 0.2 s for the 200-facet grooves at r = 0.2); it costs 10-30 ms where
-        # it does not. Then the light's roughness decides how the polynomial basis estimates its error.
+        # it does not under a sun, 0.11-0.41 s under a sky (the Cornell box, the open room: without the sky's second
+        # cast, 0.29-0.99 s with it). Then the light's roughness decides how the polynomial basis estimates its error.
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", AccuracyWarning)
-            probe = plan(scene, reflectance, light, illuminant, camera, accuracy=accuracy, wavelengths=wavelengths,
-                         max_facets=max_facets, max_iterations=0, extrapolate=extrapolate, progress=False,
-                         basis="constant")
+            pb0 = _problem(scene, reflectance, light, illuminant, camera, accuracy, wavelengths, extrapolate)
+            probe = _plan_constant(pb0, light, max_facets, 0, False, time.perf_counter(), probe=True)
         if probe.report.reached:
             return probe
     pb = _problem(scene, reflectance, light, illuminant, camera, accuracy, wavelengths, extrapolate and not quadratic)
     show = progress if progress is not None else scene.num_facets >= 2000 or accuracy < 3e-3
     if quadratic:
         return _plan_quadratic(pb, light, max_facets, max_iterations, show, t_start, not smooth_light(scene, light))
+    return _plan_constant(pb, light, max_facets, max_iterations, show, t_start)
+
+
+def _plan_constant(pb: Problem, light: Any, max_facets: int, max_iterations: int, show: bool, t_start: float,
+                   probe: bool = False) -> Plan:
+    """:func:`plan` on the constant basis (:func:`~.refine.refine`). ``probe``: the first look of ``basis="auto"``,
+    kept only where it reaches the request, so the ray-cast light's check is skipped where the a-priori estimate alone
+    is above it (:func:`~.refine.refine`)."""
+    scene, accuracy = pb.scene, pb.accuracy
     with warnings.catch_warnings():
         # the planning solves (each level, the a-priori estimate) would each repeat the solver's closure-error
         # warning of the same form factors; the solve of the chosen plan (Plan.apply) raises it once
         warnings.filterwarnings("ignore", message=r"solve\(", category=AccuracyWarning)
-        st = refine(pb, max_facets=max_facets, max_iterations=max_iterations, show=show, t_start=t_start)
+        st = refine(pb, max_facets=max_facets, max_iterations=max_iterations, show=show, t_start=t_start,
+                    probe=probe)
     t = time.perf_counter()
     r_max = float(pb.r.max()) if pb.r.numel() else 0.0
     amp = _amplification(st)
@@ -323,7 +333,7 @@ def plan(
             f"{st.iterations} refinements ({st.leaves.scene.num_facets} facets), stopped by "
             f"{st.reason or _over_budget(report)}. Raise max_facets / max_iterations or ask for less.",
             AccuracyWarning,
-            stacklevel=3,
+            stacklevel=4,
         )
     coarse, coef = None, None
     if st.coarse is not None and st.coef is not None and bool((st.coef > 0).any()):

@@ -252,7 +252,7 @@ def _light_error(pb: Problem, st: Refinement, refl_leaf: Tensor) -> Tensor:
 
 
 @torch.no_grad()
-def _solve_level(pb: Problem, st: Refinement) -> Tensor:
+def _solve_level(pb: Problem, st: Refinement, probe: bool = False) -> Tensor:
     """Solve the current leaves; returns the output (irradiance or RGB) on the user's facets ``[..., F, C]``."""
     st.K, st.g = _kernel_and_light(pb, st.leaves, st.K, st.leaves.kept, st.g)
     occ = st.K.info.get("occluded_facets")
@@ -263,7 +263,7 @@ def _solve_level(pb: Problem, st: Refinement) -> Tensor:
         st.h = _choose_wavelengths(pb, st, refl_leaf)
     else:
         st.h = pb.solve_gain(st.K, refl_leaf[..., st.nodes], st.g)  # type: ignore[arg-type]
-    if st.light_error is None:  # level 0 (the user's facets, split at contacts): the ray-cast light's error
+    if st.light_error is None and not probe:  # level 0 (the user's facets, split at contacts): the ray-cast light
         st.light_error = _light_error(pb, st, refl_leaf)
     if st.iterations == 0:  # the user's facets (split at contacts): the a-priori estimate of their error
         t = time.perf_counter()
@@ -271,6 +271,9 @@ def _solve_level(pb: Problem, st: Refinement) -> Tensor:
         est = apriori.estimate(st.leaves.scene, st.K, r_nodes, st.g, st.h, pb.light)  # type: ignore[arg-type]
         st.est = _leaf_estimate_to_user(est, st)
         pb.seconds["estimate"] = time.perf_counter() - t
+    if st.light_error is None:  # a probe: the check only where the a-priori estimate leaves the request in reach
+        reach = rms(st.est) <= pb.accuracy
+        st.light_error = _light_error(pb, st, refl_leaf) if reach else torch.zeros(pb.F, dtype=torch.float64)
     return _user_values(pb, st.nodes, st.leaves, st.h)  # type: ignore[arg-type]
 
 
@@ -409,12 +412,19 @@ def _split_step(pb: Problem, st: Refinement, user_vals: Tensor, max_facets: int)
     return True
 
 
-def refine(pb: Problem, *, max_facets: int, max_iterations: int, show: bool, t_start: float) -> Refinement:
-    """Refine until the estimated discretisation error meets its share, or a limit stops it (``reason``)."""
+def refine(pb: Problem, *, max_facets: int, max_iterations: int, show: bool, t_start: float,
+           probe: bool = False) -> Refinement:
+    """Refine until the estimated discretisation error meets its share, or a limit stops it (``reason``).
+
+    ``probe``: a first look that is kept only if it reaches the request (``basis="auto"`` on the constant basis,
+    ``max_iterations=0``): the ray-cast light's check (:func:`~.leaves.light_check`, a second cast of the sky's rays)
+    is skipped where the a-priori estimate alone is above the request, and its part is then left at 0. On the Cornell
+    box under a sky (50 pieces) that check was 0.20 s of the probe's 0.31 s; on the open room (194 pieces) 0.5 s of
+    0.9 s, where the a-priori estimate is 8–50 × the requests of the accuracy benchmark."""
     st = _start(pb)
     bar = tqdm(total=max_iterations + 1, desc="render", unit="step", leave=False, disable=None if show else True)
     while True:
-        user_vals = _solve_level(pb, st)
+        user_vals = _solve_level(pb, st, probe)
         if pb.extrapolate and st.prev_user is not None and bool(_extrapolated(st).any()):
             _solve_back(pb, st, st.prev_user)
         _update_estimate(st, user_vals, pb.extrapolate)
