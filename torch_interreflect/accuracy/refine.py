@@ -272,8 +272,9 @@ def _solve_level(pb: Problem, st: Refinement, probe: bool = False) -> Tensor:
         st.est = _leaf_estimate_to_user(est, st)
         pb.seconds["estimate"] = time.perf_counter() - t
     if st.light_error is None:  # a probe: the check only where the a-priori estimate leaves the request in reach
-        reach = rms(st.est) <= pb.accuracy
-        st.light_error = _light_error(pb, st, refl_leaf) if reach else torch.zeros(pb.F, dtype=torch.float64)
+        disc = rms(st.est)  # (the report leaves a part that is not finite out of its sum: checked then)
+        out_of_reach = math.isfinite(disc) and disc > pb.accuracy
+        st.light_error = torch.zeros(pb.F, dtype=torch.float64) if out_of_reach else _light_error(pb, st, refl_leaf)
     return _user_values(pb, st.nodes, st.leaves, st.h)  # type: ignore[arg-type]
 
 
