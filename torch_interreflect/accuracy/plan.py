@@ -299,7 +299,8 @@ def plan(
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", AccuracyWarning)
             pb0 = _problem(scene, reflectance, light, illuminant, camera, accuracy, wavelengths, extrapolate)
-            probe = _plan_constant(pb0, light, max_facets, 0, False, time.perf_counter(), probe=True)
+            probe = _plan_constant(pb0, light, max_facets, max_iterations=0, show=False, t_start=time.perf_counter(),
+                                   probe=True)
         if probe.report.reached:
             return probe
     pb = _problem(scene, reflectance, light, illuminant, camera, accuracy, wavelengths, extrapolate and not quadratic)

@@ -263,17 +263,17 @@ def _solve_level(pb: Problem, st: Refinement, probe: bool = False) -> Tensor:
         st.h = _choose_wavelengths(pb, st, refl_leaf)
     else:
         st.h = pb.solve_gain(st.K, refl_leaf[..., st.nodes], st.g)  # type: ignore[arg-type]
-    if st.light_error is None and not probe:  # level 0 (the user's facets, split at contacts): the ray-cast light
-        st.light_error = _light_error(pb, st, refl_leaf)
     if st.iterations == 0:  # the user's facets (split at contacts): the a-priori estimate of their error
         t = time.perf_counter()
         r_nodes = refl_leaf[..., st.nodes]
         est = apriori.estimate(st.leaves.scene, st.K, r_nodes, st.g, st.h, pb.light)  # type: ignore[arg-type]
         st.est = _leaf_estimate_to_user(est, st)
         pb.seconds["estimate"] = time.perf_counter() - t
-    if st.light_error is None:  # a probe: the check only where the a-priori estimate leaves the request in reach
-        disc = rms(st.est)  # (the report leaves a part that is not finite out of its sum: checked then)
-        out_of_reach = math.isfinite(disc) and disc > pb.accuracy
+    if st.light_error is None:  # level 0 (the user's facets, split at contacts): the ray-cast light's error; a probe
+        # checks it only where the a-priori estimate leaves the request in reach (the report leaves a part that is not
+        # finite out of its sum: checked then)
+        disc = rms(st.est)
+        out_of_reach = probe and math.isfinite(disc) and disc > pb.accuracy
         st.light_error = torch.zeros(pb.F, dtype=torch.float64) if out_of_reach else _light_error(pb, st, refl_leaf)
     return _user_values(pb, st.nodes, st.leaves, st.h)  # type: ignore[arg-type]
 

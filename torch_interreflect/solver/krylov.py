@@ -12,7 +12,7 @@ from ..errors import SingularSystemError
 from .plan import Stats
 
 __all__ = ["bounce_series", "cg", "cg_block", "column_tolerance", "error_tolerance", "neumann_block", "operator_cg",
-           "operator_neumann", "symmetric_operator"]
+           "operator_neumann"]
 
 
 
@@ -29,26 +29,14 @@ def error_tolerance(tol: float, r: Tensor, rho: float) -> Tensor:
     return torch.minimum(torch.maximum(0.5 * tol * gap, 16 * eps / gap), torch.full_like(gap, tol))
 
 
-def symmetric_operator(f: Tensor, sqrt_areas: Tensor) -> Tensor:
-    """``G = A^{1/2} F A^{-1/2}`` (symmetric when ``F`` is reciprocal), dense or CSR like ``f``."""
-    if f.layout == torch.strided:
-        return sqrt_areas[:, None] * f / sqrt_areas[None, :]
-    csr = f.to_sparse_csr()
-    crow, col, vals = csr.crow_indices(), csr.col_indices(), csr.values()
-    rows = torch.repeat_interleave(torch.arange(f.shape[0], device=f.device), crow.diff())
-    vals = vals * sqrt_areas[rows] / sqrt_areas[col]
-    return torch.sparse_csr_tensor(crow, col, vals, tuple(f.shape), check_invariants=False)
-
-
 def cg_block(
     f: Tensor, areas: Tensor, r: Tensor, b: Tensor, transpose: bool, tol: float | Tensor, max_iter: int,
     stats: Stats,
 ) -> Tensor:
     """CG for ``F`` dense or CSR (reciprocal: ``A F`` symmetric): :func:`operator_cg` with ``F``'s own product, so
-    ``G = A^{1/2} F A^{-1/2}`` is applied as ``sa * (F @ (v / sa))`` and never formed. Forming it
-    (:func:`symmetric_operator`) took two passes over ``F`` and a copy of it per solve: at 4,656 unknowns (the open
-    room's 776 leaves on the quadratic basis) one solve took 170 ms with it against 31 ms without, on one thread
-    (117 against 31 ms on two)."""
+    ``G = A^{1/2} F A^{-1/2}`` is applied as ``sa * (F @ (v / sa))`` and never formed. Forming it took two passes
+    over ``F`` and a copy of it per solve: at 4,656 unknowns (the open room's 776 leaves on the quadratic basis) one
+    solve took 170 ms with it against 31 ms without, on one thread (117 against 31 ms on two)."""
     return operator_cg(f.__matmul__, areas, r, b, transpose, tol, max_iter, stats)
 
 
