@@ -152,6 +152,10 @@ def hemisphere_rays(corners, normals, t1, t2, points, n, seed, eps, origin, dire
     for f in prange(K):
         c = corners[f]
         total = 0.0
+        rad = np.empty(n)  # per point: the grid's radii and heights per row, cosines and sines per column
+        lz = np.empty(n)
+        cs = np.empty(n)
+        sn = np.empty(n)
         for p in range(P):
             a = seed[f, 0] + (p + 1) * _G0
             b = seed[f, 1] + (p + 1) * _G1
@@ -169,21 +173,25 @@ def hemisphere_rays(corners, normals, t1, t2, points, n, seed, eps, origin, dire
             rb = seed[f, 0] + (p + 1) * _H1
             ou = ra - math.floor(ra)
             ov = rb - math.floor(rb)
+            for k in range(n):
+                s1 = (k + ou) / n
+                rad[k] = math.sqrt(s1)
+                lz[k] = math.sqrt(max(1.0 - s1, 0.0))
+                ang = 2.0 * math.pi * ((k + ov) / n)
+                cs[k] = math.cos(ang)
+                sn[k] = math.sin(ang)
             for d in range(D):
-                s1 = (d // n + ou) / n
-                s2 = (d % n + ov) / n
-                rad = math.sqrt(s1)
-                ang = 2.0 * math.pi * s2
-                lx = rad * math.cos(ang)
-                ly = rad * math.sin(ang)
-                lz = math.sqrt(max(1.0 - s1, 0.0))
+                r, c_ = d // n, d % n
+                lx = rad[r] * cs[c_]
+                ly = rad[r] * sn[c_]
+                z = lz[r]
                 i = (f * P + p) * D + d
                 origin[i, 0] = x0
                 origin[i, 1] = x1
                 origin[i, 2] = x2
-                direction[i, 0] = lx * t1[f, 0] + ly * t2[f, 0] + lz * normals[f, 0]
-                direction[i, 1] = lx * t1[f, 1] + ly * t2[f, 1] + lz * normals[f, 1]
-                direction[i, 2] = lx * t1[f, 2] + ly * t2[f, 2] + lz * normals[f, 2]
+                direction[i, 0] = lx * t1[f, 0] + ly * t2[f, 0] + z * normals[f, 0]
+                direction[i, 1] = lx * t1[f, 1] + ly * t2[f, 1] + z * normals[f, 1]
+                direction[i, 2] = lx * t1[f, 2] + ly * t2[f, 2] + z * normals[f, 2]
         for p in range(P):
             area[f, p] = area[f, p] / total if total > 0 else 1.0 / P
 
