@@ -147,8 +147,9 @@ def inner_exact(x, nx, V, nv, nP, cj, e1, e2, inv_l, deg, gx, gw, W, mom):
             mid = ua + (2 * pan + 1) * half
             for g in range(gx.shape[0]):
                 u = mid + half * gx[g]
-                ch = math.cosh(u)
-                sig = dist * math.sinh(u)
+                eu = math.exp(u)  # cosh and sinh from one exponential
+                ch = 0.5 * (eu + 1.0 / eu)
+                sig = dist * (0.5 * (eu - 1.0 / eu))
                 R = dist * ch
                 wgt = sign * gw[g] * half / ch
                 os_ = (fs + sig * ts) / R
