@@ -8,28 +8,75 @@ None when numba is missing or disabled
 (``TI_DISABLE_NUMBA=1``): callers then use their torch path. :func:`launch` runs one loop with
 :func:`~torch_interreflect._threads.work_threads` threads (torch's count, or the caller's inside
 :func:`~torch_interreflect._threads.compiled_work`).
+
+numba's on-disk cache (``cache=True``) checks only the file that defines a kernel, not the files of the functions it
+inlines: after an edit of :mod:`._numba_contour` alone (a ``git pull`` into the editable install of the README's
+commands) the moments' kernel kept running the old inner integral, silently. :func:`refresh_cache` drops the cached
+kernels beside these modules whenever any of their sources changed, before the first is imported.
 """
 
 from __future__ import annotations
 
+import contextlib
+import hashlib
 import importlib
 import os
 import threading
 from collections.abc import Callable
 from functools import cache
+from pathlib import Path
 from types import ModuleType
 
 import torch
 
 from .._threads import work_threads
 
-__all__ = ["launch", "loops"]
+__all__ = ["launch", "loops", "refresh_cache"]
 
 _MODULES = {"quadrature": "._numba_kernels", "pairs": "._numba_pairs", "visibility": "._numba_visibility",
             "shadows": "._numba_shadows", "moments": "._numba_moments"}
 
+#: The file beside numba's cached kernels that records the digest of the sources they were compiled from.
+_STAMP = "ti_numba_sources.sha256"
+
 #: One compiled launch at a time (numba's workqueue threading layer does not allow concurrent launches).
 _LAUNCH = threading.Lock()
+
+
+def refresh_cache(source_dir: Path, cache_dir: Path) -> bool:
+    """Drop numba's cached kernels of the ``_numba_*.py`` modules in ``source_dir`` (files ``_numba_*.nbi`` and
+    ``_numba_*.nbc`` in ``cache_dir``) when the digest of those sources differs from the one recorded there, then
+    record it. A cache that cannot be written is left alone (numba does not use it either).
+
+    Returns:
+        Whether cached kernels were dropped (or a stale record replaced).
+    """
+    digest = hashlib.sha256()
+    for src in sorted(source_dir.glob("_numba_*.py")):
+        digest.update(src.name.encode())
+        digest.update(src.read_bytes())
+    stamp = cache_dir / _STAMP
+    try:
+        if stamp.read_text() == digest.hexdigest():
+            return False
+    except OSError:
+        pass  # no record yet: kernels cached before it are of unknown sources
+    if not cache_dir.is_dir():
+        return False
+    for old in list(cache_dir.glob("_numba_*.nbi")) + list(cache_dir.glob("_numba_*.nbc")):
+        with contextlib.suppress(OSError):  # another process dropped it first, or a read-only cache
+            old.unlink()
+    with contextlib.suppress(OSError):
+        tmp = cache_dir / f"{_STAMP}.{os.getpid()}"
+        tmp.write_text(digest.hexdigest())
+        os.replace(tmp, stamp)
+    return True
+
+
+@cache
+def _fresh_cache() -> None:
+    here = Path(__file__).resolve().parent
+    refresh_cache(here, here / "__pycache__")
 
 
 @cache
@@ -51,6 +98,7 @@ def loops(stage: str = "quadrature") -> ModuleType | None:
             # layer is fork-safe and separate; its one limit, no concurrent launches from two threads, is kept by
             # the lock in launch.
             numba.config.THREADING_LAYER = "workqueue"
+        _fresh_cache()
         return importlib.import_module(_MODULES[stage], __package__)
     except ImportError:  # pragma: no cover - numba is a dependency; a broken install falls back to torch
         return None
