@@ -15,6 +15,7 @@ process's filters.
 from __future__ import annotations
 
 import collections
+import math
 import multiprocessing
 import os
 import threading
@@ -33,8 +34,8 @@ from .sample import render_sample
 from .storage import write_sample
 
 __all__ = [
-    "MIN_SAMPLES_PER_WORKER", "QUEUED_PER_WORKER", "auto_workers", "check_workers", "processes", "render_indices",
-    "usable_cores",
+    "CGROUP_QUOTA", "MIN_SAMPLES_PER_WORKER", "QUEUED_PER_WORKER", "auto_workers", "check_workers", "cpu_quota",
+    "processes", "render_indices", "usable_cores",
 ]
 
 #: Samples to render per extra worker process that ``workers="auto"`` starts (a worker's start-up ≈ 20 samples).
@@ -44,13 +45,47 @@ MIN_SAMPLES_PER_WORKER = 32
 QUEUED_PER_WORKER = 3
 
 
-def usable_cores() -> int:
-    """CPU cores this process may run on: its affinity mask where the platform has one (a SLURM task's own cores;
-    not a container's CPU quota, which the mask does not show: pass ``workers`` there)."""
+#: Linux's files of a container's CPU quota: cgroup v2 (``"quota period"`` or ``"max period"``), then cgroup v1 (the
+#: quota and the period in microseconds, ``-1``: none).
+CGROUP_QUOTA = (Path("/sys/fs/cgroup/cpu.max"),
+                (Path("/sys/fs/cgroup/cpu/cpu.cfs_quota_us"), Path("/sys/fs/cgroup/cpu/cpu.cfs_period_us")))
+
+
+def cpu_quota(files: tuple[Path, tuple[Path, Path]] | None = None) -> int | None:
+    """Whole cores a container's CPU quota allows (rounded up), or ``None`` without a quota (or off Linux).
+    ``files``: where to read it (:data:`CGROUP_QUOTA` by default).
+
+    Example:
+        >>> from torch_interreflect.training.workers import cpu_quota
+        >>> q = cpu_quota()
+        >>> q is None or q >= 1
+        True
+    """
+    v2, (quota_v1, period_v1) = CGROUP_QUOTA if files is None else files
     try:
-        return len(os.sched_getaffinity(0))
+        quota, period = v2.read_text().split()[:2]
+    except (OSError, ValueError):
+        try:
+            quota, period = quota_v1.read_text().strip(), period_v1.read_text().strip()
+        except OSError:
+            return None
+    try:
+        q, p = float(quota), float(period)
+    except ValueError:  # "max": no quota
+        return None
+    return max(1, math.ceil(q / p)) if q > 0 and p > 0 else None
+
+
+def usable_cores() -> int:
+    """CPU cores this process may run on: its affinity mask where the platform has one (a SLURM task's own cores),
+    and at most the container's CPU quota (:func:`cpu_quota`; Docker's ``--cpus``, a Kubernetes limit), which the
+    mask does not show."""
+    try:
+        cores = len(os.sched_getaffinity(0))
     except AttributeError:  # macOS, Windows
-        return os.cpu_count() or 1
+        cores = os.cpu_count() or 1
+    quota = cpu_quota()
+    return min(cores, quota) if quota is not None else cores
 
 
 def auto_workers(todo: int, threads: int = 1) -> int:
