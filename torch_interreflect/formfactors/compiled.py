@@ -46,7 +46,9 @@ _LAUNCH = threading.Lock()
 def refresh_cache(source_dir: Path, cache_dir: Path) -> bool:
     """Drop numba's cached kernels of the ``_numba_*.py`` modules in ``source_dir`` (files ``_numba_*.nbi`` and
     ``_numba_*.nbc`` in ``cache_dir``) when the digest of those sources differs from the one recorded there, then
-    record it. A cache that cannot be written is left alone (numba does not use it either).
+    record it. A folder that cannot be written is left alone (numba does not cache there either). Kernels cached
+    elsewhere (``NUMBA_CACHE_DIR``, or numba's per-user folder for a read-only install) are not checked: an upgrade
+    there replaces every file, so numba's own check sees each kernel's file change.
 
     Returns:
         Whether cached kernels were dropped (or a stale record replaced).
