@@ -62,3 +62,41 @@ def test_record_matches_the_installed_sources():
     s = ti.scenes.v_groove(90.0, size=(1.0, 1.0), divisions=1, dtype=torch.float64)
     G = ti.formfactors.moment_form_factors(s, degree=2)
     np.testing.assert_allclose(float(G.matrix[0, 6]), 0.2000438, atol=1e-7)  # F_01, two unit squares at 90°
+
+
+def test_dealt_is_a_permutation_dealing_in_turn():
+    from torch_interreflect._threads import compiled_work
+    from torch_interreflect.formfactors.compiled import dealt
+
+    items = np.arange(7) * 10
+    torch_threads = torch.get_num_threads()
+    try:
+        torch.set_num_threads(1)
+        assert np.array_equal(dealt(items), items)
+        torch.set_num_threads(2)
+        with compiled_work():  # the caller's 2 threads, torch's glue on one
+            got = dealt(items)
+    finally:
+        torch.set_num_threads(torch_threads)
+    if loops("moments") is not None and __import__("numba").config.NUMBA_NUM_THREADS >= 2:
+        assert got.tolist() == [0, 20, 40, 60, 10, 30, 50]
+
+
+@pytest.mark.skipif(loops("moments") is None, reason="compiled loops disabled")
+def test_moments_the_same_bits_on_any_thread_count():
+    """The pairs are dealt to the threads in another order per thread count; each pair's sums and rays (jitter keyed
+    by the pair) do not depend on it."""
+    from torch_interreflect.formfactors.moments import resample_visibility
+
+    scene = ti.geometry.split_at_contacts(ti.scenes.cornell_box(light=False, divisions=1))[0]
+    torch_threads = torch.get_num_threads()
+    out = []
+    try:
+        for n in (1, 2):
+            torch.set_num_threads(n)
+            K = ti.formfactors.moment_form_factors(scene, 2, quadrature_tol=1e-3)
+            out.append((K.matrix, resample_visibility(K, seed=1).matrix, K.info["rays"]))
+    finally:
+        torch.set_num_threads(torch_threads)
+    assert out[0][2] == out[1][2] > 0
+    assert torch.equal(out[0][0], out[1][0]) and torch.equal(out[0][1], out[1][1])

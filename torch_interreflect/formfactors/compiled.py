@@ -27,11 +27,12 @@ from functools import cache
 from pathlib import Path
 from types import ModuleType
 
+import numpy as np
 import torch
 
 from .._threads import work_threads
 
-__all__ = ["launch", "loops", "refresh_cache"]
+__all__ = ["dealt", "launch", "loops", "refresh_cache"]
 
 _MODULES = {"quadrature": "._numba_kernels", "pairs": "._numba_pairs", "visibility": "._numba_visibility",
             "shadows": "._numba_shadows", "moments": "._numba_moments"}
@@ -124,3 +125,21 @@ def launch(kernel: Callable[..., object], *args: object) -> object:
             return kernel(*args)
         finally:
             torch.set_num_threads(prev)
+
+
+def dealt(items: np.ndarray) -> np.ndarray:
+    """``items`` dealt to the threads of :func:`launch` in turn. A ``prange`` gives each thread one contiguous block
+    of iterations, and neighbouring items cost alike (the moments' pairs: a facet's pairs come together, touching
+    and occluded ones in runs), so one thread could get most of the work; in this order each block holds every
+    ``T``-th item. On the Cornell box cut to 0.2 m (122 pieces, tol 1e-4, 2 threads) the moments took 105 ms
+    (median of 10) against 127 ms in index order; the same bits.
+
+    Shape:
+        - items: ``[N]`` in, ``[N]`` out (a permutation)
+    """
+    import numba
+
+    T = max(1, min(work_threads(), numba.config.NUMBA_NUM_THREADS))
+    if T == 1 or items.size <= T:
+        return items
+    return np.concatenate([items[k::T] for k in range(T)])

@@ -49,7 +49,7 @@ from ..geometry._polygon import plane_eps
 from ..geometry.raycast import RayCaster
 from ..geometry.scene import Scene
 from .basis import FacetBasis, basis_size, facet_basis
-from .compiled import launch, loops
+from .compiled import dealt, launch, loops
 from .moment_reuse import reuse_map, reused_sums
 from .operator import FormFactors
 from .pairs import classify_pairs, facing_pairs, order_pairs
@@ -415,7 +415,7 @@ def resample_visibility(moments: MomentFormFactors, *, seed: int, visibility_sam
     check_count(ns, "visibility_samples", note=" (rays per side of the target)")
     t0 = time.perf_counter()
     kern = _kernel()
-    sel = torch.nonzero(setup["need"]).reshape(-1).numpy().astype(np.int64)
+    sel = dealt(torch.nonzero(setup["need"]).reshape(-1).numpy().astype(np.int64))
     acc = acc.copy()
     ray_start, blocked = _cast(kern, setup, sel, ns, int(seed))
     part = np.zeros((sel.size, moments.basis.size, moments.basis.size))
@@ -456,8 +456,9 @@ def mean_moments(a: MomentFormFactors, b: MomentFormFactors) -> MomentFormFactor
 def _pair_sums(kern: Any, setup: dict[str, Any], basis: FacetBasis, todo: np.ndarray, ns: int, seed: int,
                acc: np.ndarray) -> int:
     """Fill ``acc[todo]`` with the pairs' monomial sums (rays cast for the occluded ones among them, whose exact
-    unoccluded sums go to ``setup["exact"]``); the ray count."""
+    unoccluded sums go to ``setup["exact"]``); the ray count. The pairs are dealt to the threads (:func:`dealt`)."""
     need = setup["need"].numpy()
+    todo = dealt(todo)
     sel = todo[need[todo]]
     sel_of = np.full(setup["dom"].numel(), -1, dtype=np.int64)
     sel_of[sel] = np.arange(sel.size)
