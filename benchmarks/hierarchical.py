@@ -10,8 +10,9 @@
 Every point runs in a fresh subprocess, so its peak resident memory (``VmHWM``) is its own. Results go to
 ``benchmarks/results/hierarchical{,_quick}.{md,png}``.
 
-    python -m benchmarks.hierarchical            # full run (the 50k-facet points take a few minutes each)
-    python -m benchmarks.hierarchical --quick    # small scenes only (~2 min)
+    python -m benchmarks.hierarchical               # full run (the 50k-facet points take a few minutes each)
+    python -m benchmarks.hierarchical --quick       # small scenes only (~2 min)
+    python -m benchmarks.hierarchical --error-only  # (a) alone, to hierarchical_error.md (~2 min)
 """
 
 from __future__ import annotations
@@ -133,6 +134,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--quick", action="store_true", help="small scenes only")
     ap.add_argument("--threads", type=int, default=2, help="torch threads per run")
+    ap.add_argument("--error-only", action="store_true", help="(a) alone, written to hierarchical_error.md")
     ap.add_argument("--worker", help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.worker:
@@ -140,7 +142,7 @@ def main() -> None:
         print(json.dumps(worker_dense(spec) if spec["kind"] == "dense" else worker_hier(spec)))
         return
     err_sizes = QUICK_ERROR if args.quick else ERROR_SIZES
-    scale_sizes = QUICK_SCALE if args.quick else SCALE_SIZES
+    scale_sizes = {} if args.error_only else QUICK_SCALE if args.quick else SCALE_SIZES
     etas = (0.3, 0.5) if args.quick else ETAS
     err_rows, scale_rows = [], []
     with tempfile.TemporaryDirectory() as tmp:
@@ -168,12 +170,13 @@ def write(err_rows: list, scale_rows: list, args: argparse.Namespace) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    suffix = "_quick" if args.quick else ""
+    suffix = ("_error" if args.error_only else "") + ("_quick" if args.quick else "")
     RESULTS.mkdir(exist_ok=True)
     lines = [
         "# Hierarchical form factors: error against the dense kernel, and scaling",
         "",
-        f"`python -m benchmarks.hierarchical{' --quick' if args.quick else ''}`, {args.threads} torch threads, CPU "
+        f"`python -m benchmarks.hierarchical{' --quick' if args.quick else ''}"
+        f"{' --error-only' if args.error_only else ''}`, {args.threads} torch threads, CPU "
         f"({platform.processor() or platform.machine()}), Python {platform.python_version()}, float64. "
         "Default settings otherwise (`leaf_size=16`, `order=1`, `quadrature_tol=1e-6`, occlusion `auto`). Every point "
         "is its own subprocess; peak RSS is that process's `VmHWM` (Python, torch and the scene included).",
@@ -200,6 +203,10 @@ def write(err_rows: list, scale_rows: list, args: argparse.Namespace) -> None:
             f"{h['peak_rss_mb']:.0f} | {h['near_nnz']} | {h['far_blocks']} | {d['kernel_s']:.1f} | "
             f"{d['peak_rss_mb']:.0f} | {d['nnz']} |"
         )
+    if args.error_only:
+        write_lines(RESULTS / f"hierarchical{suffix}.md", lines)
+        print((RESULTS / f"hierarchical{suffix}.md").read_text())
+        return
     lines += [
         "",
         "## (b) Scaling (eta = 0.5)",
