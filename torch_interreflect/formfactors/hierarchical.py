@@ -80,8 +80,8 @@ def hierarchical_form_factors(
         scene: The scene.
         eta: Admissibility: two clusters interact through one far block when ``r_A + r_B ≤ eta·d`` (bounding
             radii against the distance of their centres). Smaller is more accurate and slower
-            (benchmarks/results/hierarchical.md, ~5,000 facets: relative RMS error of products and row sums
-            1.1–1.3 % at eta = 0.5 and 0.26–0.43 % at eta = 0.3, for 1.3–1.6× the time). In a closed, bright
+            (benchmarks/results/hierarchical_error.md, ~5,000 facets: relative RMS error of products and row sums
+            1.3–1.8 % at eta = 0.5 and 0.30–0.49 % at eta = 0.3, for 1.1–1.15× the time). In a closed, bright
             scene the solved irradiance amplifies row-sum errors by about ``r / (1 − r)``.
         leaf_size: Facets per leaf cluster. Leaf pairs that are not far are evaluated exactly.
         occlusion: ``"auto"`` casts rays only where a third facet could block (near pairs and far blocks);
