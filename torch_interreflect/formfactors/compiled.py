@@ -107,6 +107,13 @@ def loops(stage: str = "quadrature") -> ModuleType | None:
         return None
 
 
+def _launch_threads() -> int:
+    """Threads of a compiled launch: :func:`~torch_interreflect._threads.work_threads`, at most numba's pool."""
+    import numba
+
+    return max(1, min(work_threads(), numba.config.NUMBA_NUM_THREADS))
+
+
 def launch(kernel: Callable[..., object], *args: object) -> object:
     """Call a compiled kernel with :func:`~torch_interreflect._threads.work_threads` threads (torch's count outside
     :func:`~torch_interreflect._threads.compiled_work`), leaving torch's thread count as it was.
@@ -121,7 +128,7 @@ def launch(kernel: Callable[..., object], *args: object) -> object:
     prev = torch.get_num_threads()
     with _LAUNCH:
         try:
-            numba.set_num_threads(max(1, min(work_threads(), numba.config.NUMBA_NUM_THREADS)))
+            numba.set_num_threads(_launch_threads())
             return kernel(*args)
         finally:
             torch.set_num_threads(prev)
@@ -137,9 +144,7 @@ def dealt(items: np.ndarray) -> np.ndarray:
     Shape:
         - items: ``[N]`` in, ``[N]`` out (a permutation)
     """
-    import numba
-
-    T = max(1, min(work_threads(), numba.config.NUMBA_NUM_THREADS))
+    T = _launch_threads()
     if T == 1 or items.size <= T:
         return items
     return np.concatenate([items[k::T] for k in range(T)])
