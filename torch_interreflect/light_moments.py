@@ -11,6 +11,8 @@ of :func:`~torch_interreflect.formfactors.moment_form_factors` (``E0[(i, a)]`` =
   other facets' backs may be in view, ``b`` comes from back-hitting cosine-weighted rays
   (:func:`~torch_interreflect.formfactors.hemisphere.hemisphere_point_fractions`), or, on facets whose rows are
   ray cast, the whole open part from escaping rays (both sides of every facet block the sky).
+  :func:`sky_estimates` gives that and, from the same rays, ``1 − Σ_j F − b`` on those facets too;
+  :func:`~torch_interreflect.solver.solve_moments_sky` weighs the two per facet (their errors differ in kind).
 - an area light (a mask ``[F]`` or a material name, radiance ``L``): ``g_a = π Σ_{j ∈ light} G[(i, a), (j, 0)]``.
 - a factor ``[F]`` per facet: constant over each facet, ``g = (g_i, 0, …)``.
 """
@@ -38,7 +40,7 @@ from .geometry.raycast import RayCaster
 from .geometry.scene import Scene
 from .lights import lit_fraction, shadow_candidates, sun_direction
 
-__all__ = ["SkyRays", "light_is_rough", "light_moments", "sky_rays"]
+__all__ = ["SkyRays", "light_is_rough", "light_moments", "sky_estimates", "sky_rays"]
 
 
 def _project(K: MomentFormFactors, facets: Tensor, points: Tensor, weights: Tensor, values: Tensor) -> Tensor:
@@ -75,12 +77,15 @@ class SkyRays:
     """The ray-cast part of the sky's moments: on ``escape_ids`` the open part's moments ``[k, nb]`` counted from
     escaping rays, on ``back_ids`` the back coverage's moments ``[k', nb]`` from back-hitting rays (float64, CPU;
     :func:`sky_rays`). Estimates made with different ``seed`` are independent replicas: :meth:`mean` averages two
-    (the sky's moments are affine in them, so the light of the mean is the mean of the lights)."""
+    (the sky's moments are affine in them, so the light of the mean is the mean of the lights). ``escape_back``
+    (cast with ``rows=True``): the back coverage's moments on ``escape_ids`` from the same rays, for the open part
+    as ``1 − Σ_j F − b`` there too (:func:`sky_estimates`)."""
 
     escape_ids: Tensor
     escape: Tensor
     back_ids: Tensor
     back: Tensor
+    escape_back: Tensor | None = None
 
     def mean(self, other: SkyRays) -> SkyRays:
         """The average of two replicas on the same facets.
@@ -92,12 +97,14 @@ class SkyRays:
             raise ValueError("SkyRays.mean needs two replicas on the same facets (the same moments' leaves); got "
                              f"{self.escape_ids.numel()}/{self.back_ids.numel()} and "
                              f"{other.escape_ids.numel()}/{other.back_ids.numel()} escape/back facets that differ")
+        both = self.escape_back is not None and other.escape_back is not None
         return SkyRays(self.escape_ids, 0.5 * (self.escape + other.escape), self.back_ids,
-                       0.5 * (self.back + other.back))
+                       0.5 * (self.back + other.back),
+                       0.5 * (self.escape_back + other.escape_back) if both else None)  # type: ignore[operator]
 
 
 def sky_rays(scene: Scene, form_factors: MomentFormFactors, *, backfaces: Literal["auto"] | bool = "auto",
-             samples: int = 16, points: int = 8, seed: int = 0) -> SkyRays:
+             samples: int = 16, points: int = 8, seed: int = 0, rows: bool = False) -> SkyRays:
     """The sky's ray-cast part on the facets where the moments' row sums do not give the open part: where some
     facet's back may be in view (``backfaces``), the whole open part from escaping rays on facets whose rows are ray
     cast, and elsewhere the back coverage from back-hitting rays (both sides of every facet block the sky).
@@ -108,6 +115,8 @@ def sky_rays(scene: Scene, form_factors: MomentFormFactors, *, backfaces: Litera
         backfaces: As for :func:`light_moments`.
         samples, points: Directions and points per axis (``samples² · points²`` rays per facet).
         seed: The samples' rotation (:func:`~torch_interreflect.formfactors.hemisphere.hemisphere_point_fractions`).
+        rows: Also count the back-hitting rays on ``escape_ids`` (``escape_back``; one first-hit cast gives both, at
+            about twice the cost of the escape count alone), for :func:`sky_estimates`.
 
     Returns:
         :class:`SkyRays`.
@@ -133,15 +142,18 @@ def sky_rays(scene: Scene, form_factors: MomentFormFactors, *, backfaces: Litera
     caster = RayCaster(sc) if escape_ids.numel() or back_ids.numel() else None
     escape = torch.zeros(0, K.size, dtype=torch.float64)
     back = torch.zeros(0, K.size, dtype=torch.float64)
+    escape_back = torch.zeros(0, K.size, dtype=torch.float64) if rows else None
     if escape_ids.numel():
-        h = hemisphere_point_fractions(sc, escape_ids, samples=samples, points=points, back=False, caster=caster,
+        h = hemisphere_point_fractions(sc, escape_ids, samples=samples, points=points, back=rows, caster=caster,
                                        seed=seed)
         escape = _project(K, escape_ids, h["points"], h["weights"], h["escape"])
+        if rows:
+            escape_back = _project(K, escape_ids, h["points"], h["weights"], h["back"])
     if back_ids.numel():
         h = hemisphere_point_fractions(sc, back_ids, samples=samples, points=points, escape=False, caster=caster,
                                        seed=seed)
         back = _project(K, back_ids, h["points"], h["weights"], h["back"])
-    return SkyRays(escape_ids, escape, back_ids, back)
+    return SkyRays(escape_ids, escape, back_ids, back, escape_back)
 
 
 def _sky(K: MomentFormFactors, rays: SkyRays) -> Tensor:
@@ -153,6 +165,68 @@ def _sky(K: MomentFormFactors, rays: SkyRays) -> Tensor:
     g[rays.escape_ids] = rays.escape
     g[rays.back_ids] -= rays.back
     return math.pi * g
+
+
+def _sky_rows(K: MomentFormFactors, rays: SkyRays) -> Tensor:
+    """:func:`_sky` with the open part ``1 − Σ_j F − b`` on every facet (``rays.escape_back`` on ``escape_ids``)."""
+    nb, F = K.size, K.num_facets
+    G = K.matrix.detach().to(torch.float64).cpu()
+    g = -G.reshape(F, nb, F, nb)[:, :, :, 0].sum(2)
+    g[:, 0] += 1.0
+    g[rays.back_ids] -= rays.back
+    g[rays.escape_ids] -= rays.escape_back  # type: ignore[operator]
+    return math.pi * g
+
+
+def sky_estimates(scene: Scene, form_factors: MomentFormFactors, *, backfaces: Literal["auto"] | bool = "auto",
+                  sky_samples: int = 16, sky_points: int = 8, sky_seed: int = 0,
+                  sky: SkyRays | None = None) -> tuple[Tensor, Tensor]:
+    """The sky's geometric factor (as :func:`light_moments` gives it for ``"sky"``) by two estimators of its open
+    part, from the same rays: ``escape``, which counts the escaping rays on the facets whose rows are ray cast and
+    some other facet's back may be in view (the estimate of :func:`light_moments`), and ``rows``, ``1 − Σ_j F − b``
+    on every facet (the moments' own rows, less the back coverage counted from the rays). Both estimate the same
+    light; they differ only on those facets, and only by their sampling errors.
+
+    Their errors differ in kind. The escaping rays' count is an independent estimate of the open part; ``rows``
+    takes the moments' visibility errors into the direct light with the opposite sign to the interreflected light's,
+    so the two cancel where the facets in view are about as bright as the sky. For an answer the escape estimate
+    holds where the surroundings are dark and ``rows`` where they are bright:
+    :func:`~torch_interreflect.solver.solve_moments_sky` weighs them per facet.
+
+    Args:
+        scene, form_factors, backfaces: As for :func:`light_moments`.
+        sky_samples, sky_points, sky_seed: The rays, as for :func:`light_moments` (points and directions per axis,
+            the rotation).
+        sky: The rays already cast (:func:`sky_rays` with ``rows=True``); cast here when None.
+
+    Returns:
+        ``(escape, rows)``, each ``[F, nb]`` (float64, CPU); the direct light is ``g[..., None] * radiance``.
+
+    Raises:
+        ValueError: ``sky`` was cast without ``rows=True``.
+
+    Shape:
+        - ``escape``, ``rows``: ``[F, nb]``
+
+    Example:
+        >>> import torch, torch_interreflect as ti
+        >>> from torch_interreflect.formfactors import moment_form_factors
+        >>> from torch_interreflect.light_moments import sky_estimates
+        >>> box = ti.scenes.v_groove(60.0, divisions=2, dtype=torch.float64)
+        >>> G = moment_form_factors(box, 2)
+        >>> escape, rows = sky_estimates(box, G)   # no occluded rows: the two are the same
+        >>> bool(torch.equal(escape, rows))
+        True
+    """
+    sc = scene.detach().to(torch.float64).to("cpu")
+    if sky is None:
+        with compiled_work():
+            sky = sky_rays(sc, form_factors, backfaces=backfaces, samples=sky_samples, points=sky_points,
+                           seed=sky_seed, rows=True)
+    elif sky.escape_back is None:
+        raise ValueError("sky_estimates needs the back coverage on the escape facets: cast the rays with "
+                         "sky_rays(..., rows=True); got SkyRays without escape_back")
+    return _sky(form_factors, sky), _sky_rows(form_factors, sky)
 
 
 def light_moments(

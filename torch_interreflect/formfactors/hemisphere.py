@@ -74,13 +74,15 @@ def _hemisphere_hits(scene: Scene, idx: Tensor, samples: int, points: int, escap
             launch(kern.hemisphere_rays, *args, points, samples, rotation.numpy(), float(caster.eps), origin,
                    direction, area)
         hits: dict[str, np.ndarray] = {}
-        if escape:
+        if escape and not back:
             hits["escape"] = ~caster.occluded(origin, direction, np.full(len(origin), 4.0 * caster.size,
                                                                          dtype=np.float32))
-        if back:
+        if back:  # both from one first-hit cast where both are asked for (a ray escapes where it hits nothing)
             facet = caster.hit_facets(origin, direction)
             nrm = normals.numpy()[np.maximum(facet, 0)]
             hits["back"] = (facet >= 0) & ((direction * nrm).sum(-1) > 0)
+            if escape:
+                hits["escape"] = facet < 0
         yield s, k, origin, area, hits
 
 
@@ -92,7 +94,8 @@ def hemisphere_fractions(scene: Scene, idx: Tensor, *, samples: int, points: int
     From ``points²`` points per facet (one per cell of the unit square, jittered by a low-discrepancy sequence
     rotated per facet) ``samples²`` stratified cosine-weighted directions each (the direction grid rotated per
     point), area weighted; deterministic. Escape rays use Embree's occlusion query, back rays its first-hit query
-    (about twice the cost), each only when asked for. Compiled ray set-up where numba is present.
+    (about twice the cost), each only when asked for (both asked for: one first-hit query gives both). Compiled ray
+    set-up where numba is present.
 
     Args:
         scene: The scene.

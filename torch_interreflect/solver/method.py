@@ -85,7 +85,7 @@ def choose_method(plan: SolvePlan, r_cols: Tensor, tol: float) -> str:
     cost = AUTO_COST
     n = int(r_cols.shape[1])
     k_cols = int(torch.unique(r_cols, dim=1).shape[1]) if n > 1 else 1
-    rho = float(r_cols.max()) * plan.max_row_sum
+    rho = float(r_cols.detach().max()) * plan.max_row_sum
     gemm_rate = max(cost["gemm_min"], cost["gemm_peak"] * n / (n + cost["gemm_half"]))
     t_dense = t_cg = 0.0
     for c in sizes:

@@ -1,0 +1,135 @@
+"""The sky on the polynomial basis with its two estimates of the open part weighed per facet
+(:func:`solve_moments_sky`).
+
+Where a facet's rows are ray cast and some facet's back may be in view, the sky's open part is sampled twice over by
+the same rays (:func:`~torch_interreflect.light_moments.sky_estimates`): ``escape`` counts the escaping rays,
+``rows`` takes ``1 − Σ_j F − b`` from the moments. With the moments' visibility error ``δ`` on a facet's row (the
+part of its hemisphere wrongly taken as blocked or open), the escape estimate's answer is off by ``ρ̄ Ē δ`` (the
+interreflected light alone moves) plus its own count's error, and ``rows``' by ``(ρ̄ Ē − π L) δ`` (the direct light
+moves the other way), where ``ρ̄ Ē / π`` is the radiance of what the facet sees and ``L`` the sky's. The mix
+``escape + β (rows − escape)`` cancels the visibility part at ``β = ρ̄ Ē / (π L)``, the ratio of the two radiances,
+and is near the least-error weight wherever the visibility's error is the larger (3 × 3 visibility rays against
+8 × 8 sky directions from 8 × 8 points per piece on the Cornell box). That ratio is read from a first solve with the
+escape estimate: its interreflected part ``c − e0`` over ``π L Σ_j F``. Both estimates being of the same light, any
+weight keeps the answer consistent; the weight only trades their errors.
+
+Measured on the Cornell box under the sky (split at contacts, cut to 0.4 m: 65 pieces, tol 1e-3, 3 × 3 visibility
+rays, 8² directions from 8² points; RMS over four draws against converged Mitsuba): r = 0.9 0.61 % with the escape
+estimate, 0.43 % with ``rows``, 0.19 % weighed; r = 0.2 1.16 %, 5.3 %, 1.15 %.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import Tensor
+
+from .._checks import as_real_tensor
+from ..errors import ShapeError, ValueRangeError
+from ..formfactors.moments import MomentFormFactors
+from .moments import solve_moments
+
+__all__ = ["sky_weights", "solve_moments_sky"]
+
+
+def sky_weights(form_factors: MomentFormFactors, c: Tensor, e0: Tensor, radiance: Tensor) -> Tensor:
+    """The weight of ``rows`` per facet and wavelength: the radiance of what the facet sees over the sky's,
+    ``(c − e0)[i, 0] / (π L Σ_j G[(i, 0), (j, 0)])``, within ``[0, 1]`` (0 where the facet sees no facet).
+
+    Args:
+        form_factors: The moments.
+        c: A solution with the escape estimate (W·m⁻²·nm⁻¹). Shape ``[..., F, nb, L]``.
+        e0: Its direct light. Shape ``[..., F, nb, L]``.
+        radiance: The sky's radiance (W·m⁻²·sr⁻¹·nm⁻¹). Shape ``[..., L]`` (broadcast with ``c``'s batch).
+
+    Returns:
+        ``β``. Shape ``[..., F, 1, L]``.
+    """
+    F, nb = form_factors.num_facets, form_factors.size
+    G = form_factors.matrix.detach().to(c.dtype).to(c.device)
+    covered = G.reshape(F, nb, F, nb)[:, 0, :, 0].sum(1)  # [F]: the mean over each facet of Σ_j F(x → j)
+    seen = (c - e0)[..., :, :1, :]  # [..., F, 1, L]: the interreflected irradiance, facet averages
+    sky = math.pi * radiance[..., None, None, :] * covered[:, None, None]
+    return torch.where(sky > 0, seen / torch.where(sky > 0, sky, 1.0), 0.0).clamp(0.0, 1.0)
+
+
+def solve_moments_sky(
+    form_factors: MomentFormFactors,
+    reflectance: Tensor,
+    escape: Tensor,
+    rows: Tensor,
+    radiance: Tensor | float,
+    *,
+    tol: float = 1e-6,
+    method: str = "auto",
+    max_iter: int | None = None,
+) -> Tensor:
+    """:func:`~torch_interreflect.solver.solve_moments` under a uniform sky of radiance ``radiance``, its open part
+    weighed per facet between its two estimates (module docstring): one solve with ``escape`` for the weights
+    (:func:`sky_weights`), and one with the weighed light.
+
+    Differentiable in ``reflectance`` and ``radiance`` (through both solves and the weights).
+
+    Args:
+        form_factors: The :class:`~torch_interreflect.formfactors.moments.MomentFormFactors` of the scene.
+        reflectance: Per facet, in [0, 1]. Shape ``[..., F, L]`` or ``[..., F]`` (grey).
+        escape: The sky's geometric factor with the escaping rays' count
+            (:func:`~torch_interreflect.light_moments.sky_estimates`). Shape ``[F, nb]``.
+        rows: The same with ``1 − Σ_j F − b`` everywhere. Shape ``[F, nb]``.
+        radiance: The sky's radiance (W·m⁻²·sr⁻¹·nm⁻¹), a number or a spectrum. Shape ``[..., L]``.
+        tol, method, max_iter: As for :func:`~torch_interreflect.solver.solve_moments`.
+
+    Returns:
+        ``c``, irradiance on every facet's basis (W·m⁻²·nm⁻¹): ``c[..., i, 0, :]`` is facet ``i``'s average.
+        Shape ``[..., F, nb, L]``.
+
+    Raises:
+        ShapeError: ``escape`` and ``rows`` not both ``[F, nb]`` of the moments. ValueRangeError: a negative or
+        non-finite radiance. As :func:`~torch_interreflect.solver.solve_moments` for the rest.
+
+    Shape:
+        - ``reflectance``: ``[..., F, L]`` or ``[..., F]``; ``radiance``: ``[..., L]``
+        - output: ``[..., F, nb, L]``
+
+    Example:
+        >>> import torch, torch_interreflect as ti
+        >>> from torch_interreflect.formfactors import moment_form_factors
+        >>> from torch_interreflect.light_moments import sky_estimates
+        >>> from torch_interreflect.solver import solve_moments, solve_moments_sky
+        >>> box = ti.scenes.v_groove(60.0, divisions=2, dtype=torch.float64)
+        >>> G = moment_form_factors(box, 2)
+        >>> escape, rows = sky_estimates(box, G)
+        >>> r = torch.full((8,), 0.5, dtype=torch.float64)
+        >>> c = solve_moments_sky(G, r, escape, rows, torch.tensor([1.0], dtype=torch.float64))
+        >>> bool(torch.allclose(c, solve_moments(G, r, escape[..., None])))   # the same light: the same answer
+        True
+    """
+    if not isinstance(form_factors, MomentFormFactors):
+        raise TypeError(f"form_factors must be MomentFormFactors; got {type(form_factors).__name__}")
+    F, nb = form_factors.num_facets, form_factors.size
+    g_esc = as_real_tensor(escape, "escape")
+    g_rows = as_real_tensor(rows, "rows")
+    for name, g in (("escape", g_esc), ("rows", g_rows)):
+        if tuple(g.shape) != (F, nb):
+            raise ShapeError(f"{name} must have shape [F, nb] = [{F}, {nb}] (the sky's geometric factor per facet "
+                             f"and basis function, from sky_estimates); got {list(g.shape)}")
+    L_sky = as_real_tensor(radiance, "radiance")
+    L_sky = L_sky.reshape(1) if L_sky.ndim == 0 else L_sky
+    if not bool(torch.isfinite(L_sky).all()) or bool((L_sky < 0).any()):
+        raise ValueRangeError(f"radiance must be finite and non-negative (W·m⁻²·sr⁻¹·nm⁻¹); got values in "
+                              f"[{float(L_sky.min())}, {float(L_sky.max())}]")
+    dtype = torch.promote_types(L_sky.dtype, form_factors.matrix.dtype)
+    dtype = dtype if dtype.is_floating_point else torch.get_default_dtype()
+    dev = form_factors.matrix.device
+    L_sky = L_sky.to(dtype=dtype, device=dev)
+    g_esc, g_rows = g_esc.to(dtype=dtype, device=dev), g_rows.to(dtype=dtype, device=dev)
+    kw = {"tol": tol, "method": method, "max_iter": max_iter}
+    lead = L_sky[..., None, None, :]  # [..., 1, 1, L]
+    e_esc = g_esc[:, :, None] * lead
+    if torch.equal(g_esc, g_rows):  # no facet where the two differ: one solve
+        return solve_moments(form_factors, reflectance, e_esc, **kw)
+    c0 = solve_moments(form_factors, reflectance, e_esc, **kw)
+    beta = sky_weights(form_factors, c0, e_esc, L_sky)  # [..., F, 1, L]
+    e0 = e_esc + beta * ((g_rows - g_esc)[:, :, None] * lead)
+    return solve_moments(form_factors, reflectance, e0, **kw)
