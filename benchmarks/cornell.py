@@ -7,7 +7,9 @@ solve (per-material grey reflectances drawn at random; the error is measured on 
 first variant). Two bases: the constant one (``form_factors``, ``lights.sky``, ``solve``) and the quadratic one
 (``moment_form_factors`` of degree 2 with 3 × 3 visibility rays, ``light_moments``, ``solve_moments``) at each of
 the settings :data:`QUADRATIC_SETTINGS`: quadrature tol 1e-5 with 16 × 16 sky directions (the settings ``render``
-starts from) and the cheaper tol 1e-4 and 8 × 8 directions. The quadratic basis also runs on the split box cut to a
+starts from) and the cheaper tol 1e-4 and 8 × 8 directions, the sky's open part from its escaping rays or *weighed*
+(``sky_estimates`` and ``solve_moments_sky``: its two estimates weighed per facet, two solves; the time includes
+both). The quadratic basis also runs on the split box cut to a
 size instead (:func:`~torch_interreflect.geometry.subdivide_to`: the walls cut finer than the blocks' faces) at
 :data:`SIZED_SETTINGS`; the quadratic rows draw their rays with :data:`SEEDS` and report the RMS error over the
 draws, as Mitsuba's rows do over theirs. At a requested error, the cheapest of all our rows that reaches it is taken
@@ -40,10 +42,14 @@ from .speed_vs_error import time_at_error
 
 RESULTS = Path(__file__).resolve().parent / "results"
 VARIANTS = 100
-#: (quadrature tol, sky directions per axis) of the quadratic rows on a uniform subdivision
-QUADRATIC_SETTINGS = ((1e-5, 16), (1e-4, 16), (1e-5, 8), (1e-4, 8))
+#: (quadrature tol, sky directions per axis, weighed) of the quadratic rows on a uniform subdivision; *weighed*: the
+#: sky's two estimates of its open part weighed per facet (``sky_estimates`` and ``solve_moments_sky``), else the
+#: escaping rays' count (``light_moments``)
+QUADRATIC_SETTINGS = ((1e-5, 16, False), (1e-4, 16, False), (1e-5, 8, False), (1e-4, 8, False), (1e-4, 16, True),
+                      (1e-4, 8, True))
 #: the same on a subdivision to a size
-SIZED_SETTINGS = ((1e-4, 16), (1e-4, 8), (1e-3, 8))
+SIZED_SETTINGS = ((1e-4, 16, False), (1e-4, 8, False), (1e-3, 8, False), (1e-4, 16, True), (1e-4, 8, True),
+                  (1e-3, 8, True), (1e-3, 4, True))
 #: Seeds of the quadratic rows' rays (visibility and sky), as many draws as Mitsuba's rows have: each row's error is
 #: the RMS over them (one draw's error is a lucky or unlucky sample: at 56 pieces, tol 1e-3, sky 8², r = 0.9 the
 #: draws of seeds 0-5 were 0.76-1.85 % from the reference), its time that of seed 0.
@@ -101,8 +107,8 @@ def quadratic_meshes(scene, ks: list[int], sizes: list[float]) -> list[tuple[str
 def ours_quadratic(name: str, ks: list[int], sizes: list[float]) -> list[dict]:
     """The quadratic basis on the split box, subdivided uniformly or to a size (see the module docstring)."""
     from torch_interreflect.formfactors.moments import moment_form_factors
-    from torch_interreflect.light_moments import light_moments
-    from torch_interreflect.solver.moments import facet_averages, solve_moments
+    from torch_interreflect.light_moments import light_moments, sky_estimates
+    from torch_interreflect.solver import facet_averages, solve_moments, solve_moments_sky
 
     ref = mr.load_reference(name)
     spec = ref["settings"]
@@ -114,26 +120,34 @@ def ours_quadratic(name: str, ks: list[int], sizes: list[float]) -> list[dict]:
     grey[0] = r
     rows = []
     for label, fine, top, settings in quadratic_meshes(scene, ks, sizes):
-        for tol, sky in settings:
+        for tol, sky, weighed in settings:
 
-            def kernel(fine=fine, tol=tol, sky=sky, seed=0):
+            def kernel(fine=fine, tol=tol, sky=sky, weighed=weighed, seed=0):
                 K = moment_form_factors(fine, 2, quadrature_tol=tol, seed=seed)
+                if weighed:
+                    return K, sky_estimates(fine, K, sky_samples=sky, sky_seed=seed)
                 return K, (light_moments(fine, K, "sky", sky_samples=sky, sky_seed=seed) * radiance)[..., None]
+
+            def solve(K, refl, e0, weighed=weighed):
+                if weighed:  # e0: the two estimates
+                    return solve_moments_sky(K, refl, *e0, torch.tensor([radiance], dtype=torch.float64))
+                return solve_moments(K, refl, e0)
 
             (K, e0), t_kernel = timed(kernel, budget=20.0, reps=2)
             refl = grey[:, fine.material][..., None]  # [V, F, 1]
-            c1, t_one = timed(lambda K=K, refl=refl, e0=e0: solve_moments(K, refl[0], e0), reps=3)
-            c_all, t_all = timed(lambda K=K, refl=refl, e0=e0: solve_moments(K, refl, e0), budget=20.0, reps=2)
+            c1, t_one = timed(lambda K=K, refl=refl, e0=e0: solve(K, refl[0], e0), reps=3)
+            c_all, t_all = timed(lambda K=K, refl=refl, e0=e0: solve(K, refl, e0), budget=20.0, reps=2)
             ec = area_average(facet_averages(c1), top, fine.areas, scene.num_facets).numpy().reshape(-1)
             ev = area_average(facet_averages(c_all[0]), top, fine.areas, scene.num_facets).numpy().reshape(-1)
             assert np.allclose(ec, ev, rtol=1e-6)  # the batched solve's first variant is the single solve
             errs = [rel_errors(ec, e_ref)[0]]
             for seed in SEEDS[1:]:  # the rays drawn again (untimed): the error is the RMS over the draws
                 K, e0 = kernel(seed=seed)
-                c = facet_averages(solve_moments(K, refl[0], e0))
+                c = facet_averages(solve(K, refl[0], e0))
                 errs.append(rel_errors(area_average(c, top, fine.areas, scene.num_facets).numpy().reshape(-1),
                                        e_ref)[0])
-            rows.append({"scene": name, "who": "ours", "setting": f"{label}, quadratic, tol {tol:g}, sky {sky}²",
+            how = ", weighed" if weighed else ""
+            rows.append({"scene": name, "who": "ours", "setting": f"{label}, quadratic, tol {tol:g}, sky {sky}²{how}",
                          "facets": fine.num_facets, "error": float(np.sqrt(np.mean(np.square(errs)))),
                          "error_max": float(max(errs)), "one": t_kernel + t_one,
                          "kernel": t_kernel, "solve": t_one, "variants": t_kernel + t_all})
@@ -207,9 +221,10 @@ def write(path: Path, rows: list[dict]) -> None:
         f"*{VARIANTS} variants*: kernel + light + one batched solve of {VARIANTS} reflectance draws (ours),",
         f"{VARIANTS} renders (Mitsuba, multijitter sampler). Ours on the constant basis, or on the quadratic one",
         "(`quadratic`: degree-2 moments, 3 × 3 visibility rays, at quadrature tol 1e-5 or 1e-4 and 16² or 8² sky",
-        "directions) on the box split at its contacts and then subdivided: uniformly (`subdivide(k)`: every piece",
-        "k × k) or to a size (`subdivide_to(h)`: every piece cut until its edges are at most h metres; there also",
-        "at tol 1e-3).",
+        "directions from 8² points per piece) on the box split at its contacts and then subdivided: uniformly",
+        "(`subdivide(k)`: every piece k × k) or to a size (`subdivide_to(h)`: every piece cut until its edges are at",
+        "most h metres; there also at tol 1e-3). *weighed*: the sky's open part from its two estimates weighed per",
+        "facet (`sky_estimates`, `solve_moments_sky`: one more solve, counted), else from its escaping rays.",
         "*Mitsuba at equal error*: its time interpolated at our error (`t ∝ e⁻²` below its smallest measured error).",
         "",
         f"| scene | who | setting | facets | error | worst draw | one | {VARIANTS} variants | "
