@@ -24,16 +24,10 @@ from ..geometry._polygon import bilinear, bilinear_coordinates
 from ..geometry.scene import Scene, area_average
 from ..solver.api import solve
 from ..solver.moments import DENSE_MAX_UNKNOWNS, solve_moments
+from ..solver.sky import solve_moments_sky
 from .leaves import light_factor, rms
-from .moments_plan import (
-    leaf_light,
-    moment_quadrature_tol,
-    moment_report,
-    polynomial_allowed,
-    refine_moments,
-    smooth_light,
-    solver_tolerance,
-)
+from .moments_plan import leaf_light, moment_report, refine_moments
+from .moments_settings import moment_quadrature_tol, polynomial_allowed, smooth_light, solver_tolerance
 from .refine import AMPLIFICATION, Problem, Refinement, refine
 from .report import AccuracyReport, RenderResult
 from .settings import Settings, budget_for, choose_settings, quadrature_tol_for
@@ -60,7 +54,9 @@ class Plan:
             user facet in the extrapolated output ``x + c (x − x_coarse)`` (Richardson; 0 where it is not used).
         degree: Degree of the polynomial irradiance per leaf (0: constant; 2: ``form_factors`` are
             :class:`~torch_interreflect.formfactors.moments.MomentFormFactors` and ``light_factor`` the light's
-            moments ``[n, nb]``, :mod:`.moments_plan`).
+            moments ``[n, nb]``, :mod:`.moments_plan`). ``sky_rows``: there, under a sky, its other estimate
+            ``[n, nb]``, weighed with ``light_factor`` at each solve
+            (:func:`~torch_interreflect.solver.solve_moments_sky`).
     """
 
     scene: Scene
@@ -78,6 +74,7 @@ class Plan:
     coarse: Plan | None = None
     extrapolation: Tensor | None = None
     degree: int = 0
+    sky_rows: Tensor | None = None
 
     def for_geometry(self, scene: Scene) -> Plan:
         """The same refinement and settings on ``scene``: the user's facets at other positions (same count, kind and
@@ -198,8 +195,15 @@ class Plan:
             if torch.is_grad_enabled() and (self.scene.corners.requires_grad or light_grad):
                 self._check_geometry_fixed()
             K, g, areas = self.form_factors, self.light_factor, self.leaves.areas
-            gl = g.to(device=refl_leaf.device, dtype=refl_leaf.dtype)[:, :, None].expand(-1, -1, refl_leaf.shape[-1])
-            h = solve_moments(K, refl_leaf, gl, tol=self.solver_tol, method=self.method)[..., 0, :]  # type: ignore[arg-type]
+            g = g.to(device=refl_leaf.device, dtype=refl_leaf.dtype)
+            M: Any = K  # MomentFormFactors where degree > 0
+            if self.sky_rows is None:
+                gl = g[:, :, None].expand(-1, -1, refl_leaf.shape[-1])
+                h = solve_moments(M, refl_leaf, gl, tol=self.solver_tol, method=self.method)
+            else:  # unit sky radiance per wavelength (S carries the spectrum)
+                h = solve_moments_sky(M, refl_leaf, g, self.sky_rows.to(g), refl_leaf.new_ones(nodes.numel()),
+                                      tol=self.solver_tol, method=self.method)
+            h = h[..., 0, :]
         else:
             K, g, areas = self._geometry()
             e0 = g.to(refl_leaf.dtype)[:, None].expand(-1, refl_leaf.shape[-1])
@@ -363,7 +367,7 @@ def _plan_constant(pb: Problem, light: Any, max_facets: int, max_iterations: int
 def _plan_quadratic(pb: Problem, light: Any, max_facets: int, max_iterations: int, show: bool, t_start: float,
                     halving: bool) -> Plan:
     """:func:`plan` on the polynomial basis (:mod:`.moments_plan`); ``halving``: the light is rough over some piece
-    (:func:`~.moments_plan.smooth_light`), so the error is estimated from splitting leaves, not from the degrees."""
+    (:func:`~.moments_settings.smooth_light`), so the error is estimated from splitting leaves, not from the degrees."""
     pb.quadrature_tol = moment_quadrature_tol(pb.accuracy)
     kw = {"max_unknowns": max_facets, "max_iterations": max_iterations, "show": show, "t_start": t_start}
     st = refine_moments(pb, halving=halving, **kw)
@@ -385,7 +389,7 @@ def _plan_quadratic(pb: Problem, light: Any, max_facets: int, max_iterations: in
             f"{why}. Raise max_facets / max_iterations or ask for less.", AccuracyWarning, stacklevel=3)
     return Plan(pb.scene, st.leaves.scene, st.leaves.user, st.K, st.g, pb.grid,  # type: ignore[arg-type]
                 torch.arange(pb.grid.numel(), device=pb.grid.device), method, None, tol, report, light,
-                degree=st.K.degree)
+                degree=st.K.degree, sky_rows=st.rows)
 
 
 def _over_budget(report: AccuracyReport) -> str:

@@ -1,0 +1,81 @@
+"""Settings of the quadratic planner (:mod:`.moments_plan`): when the polynomial basis applies, the moments'
+quadrature tolerance and CG's for a request, and the allowances reported for the kernel and the solver."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from torch import Tensor
+
+from ..formfactors.compiled import loops
+from ..geometry.contacts import split_at_contacts
+from ..geometry.scene import Scene
+from ..light_moments import light_is_rough
+from ..lights import sun_direction
+from .refine import Problem
+
+__all__ = ["kernel_part", "moment_quadrature_tol", "polynomial_allowed", "smooth_light", "solver_part",
+           "solver_tolerance"]
+
+
+def moment_quadrature_tol(accuracy: float) -> float:
+    """Per-entry quadrature tolerance of the moments for a request: a hundredth of it, in ``[1e-8, 1e-5]``. Tighter
+    than the constant basis needs (its orders grow slowly: on the 200-facet 30° V-groove the moments take 0.062 s
+    at 1e-4 and 0.088 s at 1e-6), since the quadratic basis's discretisation error is small enough for a 1e-4
+    kernel to show (0.069 % against 0.044 % at 1e-5 and below)."""
+    return min(1e-5, max(1e-8, 1e-2 * accuracy))
+
+
+def kernel_part(pb: Problem) -> float:
+    """The allowance reported for the kernel's error: its tolerance amplified by the interreflections,
+    ``tol / (1 − r_max)`` (at most 20 ×; ``r_max`` the largest planning reflectance). A measured allowance, not a
+    bound: far pairs are integrated to
+    :data:`~torch_interreflect.formfactors.moments.FAR_TOL_FACTOR` times the tolerance, and on the 200-facet V-groove
+    the output moves by 5e-6 between tolerances 1e-5 and 1e-8."""
+    r_max = float(pb.r.max()) if pb.r.numel() else 0.0
+    return pb.quadrature_tol / max(1.0 - r_max, 0.05)
+
+
+def solver_part(pb: Problem) -> float:
+    """The allowance reported for the solver: CG's tolerance (:func:`solver_tolerance`), since a polynomial plan
+    solves by dense Cholesky or CG, whichever the cost model picks at each solve."""
+    return solver_tolerance(pb.accuracy)
+
+
+def polynomial_allowed(basis: str, scene: Scene, light: Any) -> bool:
+    """Whether the polynomial basis may be used: ``basis="quadratic"``, or ``"auto"`` unless gradients must reach the
+    geometry (corners or a light direction that require grad: the moments are constants of the geometry) or the
+    compiled loops are off. Under ``"auto"`` :func:`~torch_interreflect.accuracy.plan` then also needs the light
+    smooth over every piece (:func:`smooth_light`), where the estimate holds.
+
+    Raises:
+        ValueError: ``basis`` is not ``"auto"``, ``"constant"`` or ``"quadratic"``.
+    """
+    if basis not in ("auto", "constant", "quadratic"):
+        raise ValueError(f"basis must be 'auto', 'constant' or 'quadratic'; got {basis!r}")
+    if basis != "auto":
+        return basis == "quadratic"
+    light_grad = isinstance(light, Tensor) and light.requires_grad
+    return not (scene.corners.requires_grad or light_grad or loops("moments") is None)
+
+
+def smooth_light(scene: Scene, light: Any) -> bool:
+    """No rough light over any piece of the scene split at contacts
+    (:func:`~torch_interreflect.light_moments.light_is_rough`: a sun's shadow edge, a sky or area light through
+    blockable pairs), and no contact in a scene with blockable pairs: where something stands on something among
+    occluders (the Cornell box's blocks), the interreflected light has the penumbrae that make a sky rough, and the
+    estimate failed there under uniform light too (accuracy 1e-3: estimated 0.14 % against 0.38 % at 1,208
+    leaves). The W fold (occluders, no contact) keeps the polynomial basis: 0.036 % from Mitsuba at 1e-3 with an
+    estimate of 0.094 %."""
+    pieces = split_at_contacts(scene)[0]
+    is_sun = sun_direction(light, scene.num_facets) is not None  # on the user's facets, not the pieces' count
+    if light_is_rough(pieces, light, direction=is_sun):
+        return False
+    contacts = pieces.num_facets != scene.num_facets
+    blockable = light_is_rough(pieces, "sky")  # a sky is rough exactly where a third facet can block a pair
+    return not (contacts and blockable)
+
+
+def solver_tolerance(accuracy: float) -> float:
+    """CG's tolerance on the quadratic basis (the dense solve is direct): far below the request."""
+    return max(1e-10, 1e-3 * accuracy)
