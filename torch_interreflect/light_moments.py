@@ -156,12 +156,17 @@ def sky_rays(scene: Scene, form_factors: MomentFormFactors, *, backfaces: Litera
     return SkyRays(escape_ids, escape, back_ids, back, escape_back)
 
 
-def _sky(K: MomentFormFactors, rays: SkyRays) -> Tensor:
+def _open_rows(K: MomentFormFactors) -> Tensor:
+    """``mean_i(ψ_a (1 − Σ_j F(x → j)))`` per facet ``[F, nb]``: the open part that the moments' rows leave."""
     nb, F = K.size, K.num_facets
     G = K.matrix.detach().to(torch.float64).cpu()
-    covered = G.reshape(F, nb, F, nb)[:, :, :, 0].sum(2)  # mean_i(ψ_a Σ_j F(x → j))
-    g = -covered
+    g = -G.reshape(F, nb, F, nb)[:, :, :, 0].sum(2)
     g[:, 0] += 1.0
+    return g
+
+
+def _sky(K: MomentFormFactors, rays: SkyRays) -> Tensor:
+    g = _open_rows(K)
     g[rays.escape_ids] = rays.escape
     g[rays.back_ids] -= rays.back
     return math.pi * g
@@ -169,10 +174,7 @@ def _sky(K: MomentFormFactors, rays: SkyRays) -> Tensor:
 
 def _sky_rows(K: MomentFormFactors, rays: SkyRays) -> Tensor:
     """:func:`_sky` with the open part ``1 − Σ_j F − b`` on every facet (``rays.escape_back`` on ``escape_ids``)."""
-    nb, F = K.size, K.num_facets
-    G = K.matrix.detach().to(torch.float64).cpu()
-    g = -G.reshape(F, nb, F, nb)[:, :, :, 0].sum(2)
-    g[:, 0] += 1.0
+    g = _open_rows(K)
     g[rays.back_ids] -= rays.back
     g[rays.escape_ids] -= rays.escape_back  # type: ignore[operator]
     return math.pi * g
