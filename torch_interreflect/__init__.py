@@ -1,8 +1,9 @@
 """torch_interreflect: exact, differentiable, spectral infinite-bounce interreflection for PyTorch.
 
 Data flows one way, one folder (or file) per stage: ``geometry`` (scenes) → ``formfactors`` → ``lights`` and
-``spectral`` (``E0``; ``light_moments`` on the polynomial basis) → ``solver`` → ``camera`` (sensor RGB, images) →
-``accuracy`` (``render``); ``layers`` (nn.Modules), ``inverse``, ``training`` and ``cli`` stand on them.
+``spectral`` (``E0``; ``light_moments`` on the polynomial basis, ``sky_parts`` the sky's two estimates) → ``solver``
+→ ``camera`` (sensor RGB, images) → ``accuracy`` (``render``); ``layers`` (nn.Modules), ``inverse``, ``training`` and
+``cli`` stand on them.
 ``training`` is imported on first use.
 
 Example:
@@ -16,7 +17,20 @@ Example:
 import importlib
 from typing import Any
 
-from . import accuracy, camera, errors, formfactors, geometry, inverse, layers, light_moments, lights, solver, spectral
+from . import (
+    accuracy,
+    camera,
+    errors,
+    formfactors,
+    geometry,
+    inverse,
+    layers,
+    light_moments,
+    lights,
+    sky_parts,
+    solver,
+    spectral,
+)
 from ._deprecation import moved_attribute
 from ._version import __version__
 from .accuracy import AccuracyReport, RenderResult, render
@@ -49,6 +63,7 @@ __all__ = [
     "radiance",
     "render",
     "scenes",
+    "sky_parts",
     "solve",
     "solver",
     "spectral",
