@@ -98,6 +98,9 @@ class SkyRays:
                              f"{self.escape_ids.numel()}/{self.back_ids.numel()} and "
                              f"{other.escape_ids.numel()}/{other.back_ids.numel()} escape/back facets that differ")
         both = self.escape_back is not None and other.escape_back is not None
+        if not both and (self.escape_back is not None or other.escape_back is not None):
+            raise ValueError("SkyRays.mean needs two replicas cast alike: one was cast with rows=True (escape_back) "
+                             "and the other without")
         return SkyRays(self.escape_ids, 0.5 * (self.escape + other.escape), self.back_ids,
                        0.5 * (self.back + other.back),
                        0.5 * (self.escape_back + other.escape_back) if both else None)  # type: ignore[operator]
@@ -205,7 +208,8 @@ def sky_estimates(scene: Scene, form_factors: MomentFormFactors, *, backfaces: L
         ``(escape, rows)``, each ``[F, nb]`` (float64, CPU); the direct light is ``g[..., None] * radiance``.
 
     Raises:
-        ValueError: ``sky`` was cast without ``rows=True``.
+        ShapeError: the moments are of another scene. ValueError: ``sky`` was cast without ``rows=True``, or
+        ``backfaces`` is not ``"auto"``, True or False.
 
     Shape:
         - ``escape``, ``rows``: ``[F, nb]``
@@ -220,6 +224,10 @@ def sky_estimates(scene: Scene, form_factors: MomentFormFactors, *, backfaces: L
         >>> bool(torch.equal(escape, rows))
         True
     """
+    if form_factors.num_facets != scene.num_facets:
+        raise ShapeError(f"form_factors has {form_factors.num_facets} facets but the scene has {scene.num_facets}")
+    if backfaces not in ("auto", True, False):
+        raise ValueError(f"backfaces must be 'auto', True or False; got {backfaces!r}")
     sc = scene.detach().to(torch.float64).to("cpu")
     if sky is None:
         with compiled_work():

@@ -67,7 +67,7 @@ def sky_open_parts(scene: Scene, form_factors: FormFactorOperator, *, backfaces:
     rows = 1.0 - form_factors.row_sums().detach().to(torch.float64).cpu()
     escape = rows.clone()
     if backfaces is False:
-        return escape, rows
+        return escape.clamp_min(0.0), rows
     occ = form_factors.info.get("occluded_facets")
     occ = occ.cpu() if isinstance(occ, Tensor) else torch.zeros(F, dtype=torch.bool)
     maybe_back = facing_any(scene, one_way=True) if backfaces == "auto" else torch.ones(F, dtype=torch.bool)

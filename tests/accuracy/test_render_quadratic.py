@@ -140,7 +140,7 @@ def test_a_bright_sky_lit_plan_weighs_the_sky_s_two_estimates():
     """The Cornell box under a sky at r = 0.9 and 5e-3: the sky's two estimates are weighed at every solve
     (``Plan.sky_rows``), which cancels most of the visibility rays' error. Measured: 0.056 % from Mitsuba in 212
     leaves and 1.7 s, with 3 visibility rays per side and 16² sky directions, estimated 0.29 % (the escape count
-    alone: 0.14 % in 236 leaves and 8.9 s, after growing the rays to 12 per side and 26²). ``apply`` to other
+    alone: 0.14 % in 236 leaves and 8.8 s, after growing the rays to 12 per side and 26²). ``apply`` to other
     reflectances weighs again for them (:func:`solve_moments_sky` on the plan's moments). At r = 0.2 (a weight of
     at most 1/4) the escape count alone is kept."""
     from torch_interreflect.solver import solve_moments_sky

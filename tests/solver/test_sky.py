@@ -188,6 +188,14 @@ def test_bad_inputs(cornell):
         solve_moments_sky(K.matrix, r, escape, rows, L)  # type: ignore[arg-type]
     with pytest.raises(ValueError, match="rows=True"):
         sky_estimates(scene, K, sky=sky_rays(scene, K, samples=4, points=2))
+    with pytest.raises(ShapeError, match="facets"):
+        sky_estimates(ti.scenes.v_groove(60.0, dtype=D), K)
+    with pytest.raises(ValueError, match="backfaces"):
+        sky_estimates(scene, K, backfaces="sometimes")  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match="cast alike"):
+        sky_rays(scene, K, samples=4, points=2).mean(sky_rays(scene, K, samples=4, points=2, rows=True))
+    with pytest.raises(ShapeError, match=r"\[\.\.\., F, nb, L\]"):
+        sky_weights(K, escape[None], escape[None], L)
 
 
 # ---------------------------------------------------------------------------------------------- the constant basis
@@ -264,3 +272,16 @@ def test_constant_dtypes_gradients_and_bad_inputs(box16, dtype):
         solve_sky(K, refl, e[:-1], rw, torch.ones(1, dtype=dtype))
     with pytest.raises(ShapeError, match="facets"):
         sky_open_parts(ti.scenes.v_groove(60.0, dtype=D), K)
+
+
+def test_constant_geometry_gradient_as_lights_sky():
+    """A V-groove whose angle requires grad (no occluded rows: the two estimates agree): ``solve_sky`` passes the
+    gradient of ``1 − Σ_j F_ij`` to the geometry as ``lights.sky`` does (measured: the same bits)."""
+    angle = torch.tensor(50.0, dtype=D, requires_grad=True)
+    groove = ti.scenes.v_groove(angle, divisions=2, dtype=D)
+    K = ti.form_factors(groove)
+    e, rw = sky_open_parts(groove, K, sky_samples=4)
+    r, L = torch.full((8,), 0.7, dtype=D), torch.ones(1, dtype=D)
+    (g1,) = torch.autograd.grad(solve_sky(K, r, e, rw, L).mean(), angle, retain_graph=True)
+    (g2,) = torch.autograd.grad(ti.solve(K, r, ti.lights.sky(groove, K, L)).mean(), angle)
+    assert float(g1) != 0.0 and torch.allclose(g1, g2, rtol=1e-12, atol=0)

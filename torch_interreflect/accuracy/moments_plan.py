@@ -17,13 +17,14 @@ the degree-2 output is hardly better than the degree-1 one and their difference 
 Cornell box under a sky, 50 leaves: 1.28 % from Mitsuba against 1.77 % for degree 1, a difference of 0.59 %; under
 a sun at 800 leaves: 0.33 % from a 4 × finer solution against an estimate of 0.033 %; both measured while building
 this, not in a committed benchmark). Contacts among occluders do the same to the interreflected light (the Cornell
-box under uniform light at 1e-3: estimated 0.14 %, actual 0.38 %). On such scenes (:func:`smooth_light` false, or a
-rough leaf found by the light's own shadow points) the planner estimates by *halving* instead: the first level is
-solved, every leaf is split in four and solved again, and a user facet's estimate is :data:`Q_HALVING` times the
-change of its output when its leaves were last split; the facets carrying the excess are split again. On the
+box under uniform light at 1e-3: estimated 0.14 %, actual 0.38 %). On such scenes
+(:func:`~.moments_settings.smooth_light` false, or a rough leaf found by the light's own shadow points) the planner
+estimates by *halving* instead: the first level is solved, every leaf is split in four and solved again, and a user
+facet's estimate is :data:`Q_HALVING` times the change of its output when its leaves were last split; the facets
+carrying the excess are split again. On the
 Cornell box under a sky at 1e-2 this reaches 0.44 % / 0.30 % from Mitsuba (r = 0.9 / 0.2) with 200 / 212 leaves in
 1.4 s / 1.6 s, estimated 0.82 % / 0.87 % (the constant basis took 4,448 leaves and 28 s for 0.30 % at r = 0.9, and
-warned at r = 0.2 with an actual 3.4 %).
+warned at r = 0.2 with an actual 3.4 %); with the sky's two estimates weighed (below), 0.057 % in 1.3 s at r = 0.9.
 
 Rays (pairs that a third facet could block, and the sky's open part on their leaves where a facet's back may be in
 view) are sampled. At the last step both are drawn again at the same counts with other seeds (replicas,
@@ -43,8 +44,8 @@ Under a sky, where a leaf's open part is counted from escaping rays, the same ra
 moments' row sums (:func:`~torch_interreflect.light_moments.sky_estimates`), and every solve weighs the two per leaf
 (:func:`~torch_interreflect.solver.solve_moments_sky`): the weight cancels the visibility rays' error where the
 surroundings are as bright as the sky. Only where the largest reflectance can make them so (:data:`WEIGH_REFLECTANCE`;
-:func:`_weighed`). The Cornell box at r = 0.9 and 5e-3: 1.7 s and 0.056 % from Mitsuba (212 leaves, the rays at
-their first counts), against 8.9 s and 0.14 % (236 leaves, the rays grown to 12 per side and 26² directions).
+:func:`_weighed`). The Cornell box at r = 0.9 and 5e-3: 1.7 s and 0.051 % from Mitsuba (212 leaves, the rays at
+their first counts), against 8.8 s and 0.14 % (236 leaves, the rays grown to 12 per side and 26² directions).
 
 Where the light is smooth, the first level that meets the discretisation's share also measures the ray-cast parts
 (one replica each at the first counts). If they do not fit in what the share leaves of the request, the share is
@@ -65,6 +66,7 @@ import torch
 from torch import Tensor
 from tqdm.auto import tqdm
 
+from .._deprecation import moved_attribute
 from ..formfactors.moments import MomentFormFactors, mean_moments, moment_form_factors, resample_visibility
 from ..geometry.contacts import split_at_contacts
 from ..light_moments import SkyRays, light_moments, sky_estimates, sky_rays
@@ -87,6 +89,15 @@ from .ray_counts import (
 )
 from .refine import Problem
 from .report import AccuracyReport
+
+#: Names that moved to :mod:`.moments_settings` (this release): they still resolve here, with a warning.
+_MOVED = {name: "torch_interreflect.accuracy.moments_settings" for name in (
+    "kernel_part", "moment_quadrature_tol", "polynomial_allowed", "smooth_light", "solver_part", "solver_tolerance")}
+
+
+def __getattr__(name: str) -> Any:
+    return moved_attribute(__name__, name, _MOVED)
+
 
 __all__ = ["DEGREE", "HALVING_SHARE", "Q_EST", "Q_HALVING", "Q_LINEAR", "RAY_FIRST_SHARE", "REPLICA_MARGIN",
            "WEIGH_REFLECTANCE", "MomentRefinement", "leaf_light", "moment_report", "refine_moments"]
@@ -282,7 +293,7 @@ def _weighed(pb: Problem) -> bool:
     matter. The weight is the radiance a facet sees over the sky's, at most ``r / (1 − r)`` (``r`` the largest
     reflectance); below :data:`WEIGH_REFLECTANCE` (a weight of at most 1/2) the escape count alone is kept. On the
     accuracy benchmark's sky-lit scenes at r = 0.2 weighing changed the error by 1–4 % and took 14–49 % more time;
-    at r = 0.9 it took the Cornell box at 5e-3 from 8.9 s (0.14 % from Mitsuba) to 1.9 s (0.056 %)."""
+    at r = 0.9 it took the Cornell box at 5e-3 from 8.8 s (0.14 % from Mitsuba) to 1.7 s (0.051 %)."""
     return _is_sky(pb) and bool(pb.r.numel()) and float(pb.r.max()) >= WEIGH_REFLECTANCE
 
 
@@ -297,8 +308,8 @@ def refine_moments(pb: Problem, *, max_unknowns: int, max_iterations: int, show:
         show: Show a progress bar.
         t_start: Start of the planning (for the history's seconds).
         halving: Estimate from the change of each user facet's output when its leaves are split
-            (:data:`Q_HALVING`), not from the degrees' difference: where the light is rough (:func:`smooth_light`).
-            Every user facet is split at least once.
+            (:data:`Q_HALVING`), not from the degrees' difference: where the light is rough
+            (:func:`~.moments_settings.smooth_light`). Every user facet is split at least once.
     """
     pieces, piece_user = split_at_contacts(pb.scene)
     leaves = Leaves(pieces, piece_user.to(pb.scene.device))

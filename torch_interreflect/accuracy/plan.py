@@ -55,8 +55,8 @@ class Plan:
         degree: Degree of the polynomial irradiance per leaf (0: constant; 2: ``form_factors`` are
             :class:`~torch_interreflect.formfactors.moments.MomentFormFactors` and ``light_factor`` the light's
             moments ``[n, nb]``, :mod:`.moments_plan`). ``sky_rows``: there, under a sky, its other estimate
-            ``[n, nb]``, weighed with ``light_factor`` at each solve
-            (:func:`~torch_interreflect.solver.solve_moments_sky`).
+            ``[n, nb]``, weighed with ``light_factor`` at each solve (``ti.solver.solve_moments_sky``; a
+            ``dataclasses.replace`` of ``light_factor`` needs ``sky_rows=None`` or its own).
     """
 
     scene: Scene
