@@ -281,7 +281,9 @@ def sky(
     The part of each facet's hemisphere that sees no facet sees the sky. ``F`` counts only the facets whose
     front side a facet sees; ``b_i`` is the part of its hemisphere covered by the *back* of other facets (a
     floor under a block without a bottom sees the block's inside), estimated by ray casting where it can be
-    nonzero. With an occlusion-aware ``F`` the result is exact where no back faces are in view.
+    nonzero. With an occlusion-aware ``F`` the result is exact where no back faces are in view. Where rows are ray
+    cast the escaping rays are counted instead; under bright surroundings :func:`~torch_interreflect.solver.solve_sky`
+    (with :func:`~torch_interreflect.sky_parts.sky_open_parts`) weighs that count against ``1 − Σ_j F_ij − b_i``.
 
     Args:
         scene: The scene.
