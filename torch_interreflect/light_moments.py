@@ -168,16 +168,17 @@ def _open_rows(K: MomentFormFactors) -> Tensor:
     return g
 
 
-def _sky(K: MomentFormFactors, rays: SkyRays) -> Tensor:
-    g = _open_rows(K)
+def _sky(K: MomentFormFactors, rays: SkyRays, open_rows: Tensor | None = None) -> Tensor:
+    """The sky's geometric factor from the escape count (``open_rows``: :func:`_open_rows` of ``K``, if made)."""
+    g = _open_rows(K) if open_rows is None else open_rows.clone()
     g[rays.escape_ids] = rays.escape
     g[rays.back_ids] -= rays.back
     return math.pi * g
 
 
-def _sky_rows(K: MomentFormFactors, rays: SkyRays) -> Tensor:
+def _sky_rows(K: MomentFormFactors, rays: SkyRays, open_rows: Tensor | None = None) -> Tensor:
     """:func:`_sky` with the open part ``1 − Σ_j F − b`` on every facet (``rays.escape_back`` on ``escape_ids``)."""
-    g = _open_rows(K)
+    g = _open_rows(K) if open_rows is None else open_rows.clone()
     g[rays.back_ids] -= rays.back
     g[rays.escape_ids] -= rays.escape_back  # type: ignore[operator]
     return math.pi * g
@@ -236,7 +237,8 @@ def sky_estimates(scene: Scene, form_factors: MomentFormFactors, *, backfaces: L
     elif sky.escape_back is None:
         raise ValueError("sky_estimates needs the back coverage on the escape facets: cast the rays with "
                          "sky_rays(..., rows=True); got SkyRays without escape_back")
-    return _sky(form_factors, sky), _sky_rows(form_factors, sky)
+    base = _open_rows(form_factors)  # one pass over the moments for both
+    return _sky(form_factors, sky, base), _sky_rows(form_factors, sky, base)
 
 
 def light_moments(

@@ -127,12 +127,8 @@ def solve_moments_sky(
     if not isinstance(form_factors, MomentFormFactors):
         raise TypeError(f"form_factors must be MomentFormFactors; got {type(form_factors).__name__}")
     F, nb = form_factors.num_facets, form_factors.size
-    g_esc = as_real_tensor(escape, "escape")
-    g_rows = as_real_tensor(rows, "rows")
-    for name, g in (("escape", g_esc), ("rows", g_rows)):
-        if tuple(g.shape) != (F, nb):
-            raise ShapeError(f"{name} must have shape [F, nb] = [{F}, {nb}] (the sky's geometric factor per facet "
-                             f"and basis function, from sky_estimates); got {list(g.shape)}")
+    g_esc, g_rows = _estimates(escape, rows, (F, nb), "the sky's geometric factor per facet and basis function, "
+                               "from sky_estimates")
     L_sky = _radiance(radiance)
     dtype = torch.promote_types(L_sky.dtype, form_factors.matrix.dtype)
     dtype = dtype if dtype.is_floating_point else torch.get_default_dtype()
@@ -199,12 +195,8 @@ def solve_sky(
         >>> solve_sky(K, r, escape, rows, L).shape
         torch.Size([16, 1])
     """
-    F = form_factors.num_facets
-    g_esc, g_rows = as_real_tensor(escape, "escape"), as_real_tensor(rows, "rows")
-    for name, g in (("escape", g_esc), ("rows", g_rows)):
-        if tuple(g.shape) != (F,):
-            raise ShapeError(f"{name} must have shape [F] = [{F}] (the open part per facet, from sky_open_parts); got "
-                             f"{list(g.shape)}")
+    g_esc, g_rows = _estimates(escape, rows, (form_factors.num_facets,), "the open part per facet, from "
+                               "sky_open_parts")
     L_sky = _radiance(radiance)
     row_sums = form_factors.row_sums()
     dtype = torch.promote_types(L_sky.dtype, row_sums.dtype)
@@ -213,10 +205,22 @@ def solve_sky(
     g_esc = g_esc.to(L_sky)[:, None] + live
     g_rows = g_rows.to(L_sky)[:, None] + live
     E0 = math.pi * g_esc * L_sky[..., None, :]
+    if torch.equal(g_esc, g_rows):  # no facet where the two differ: one solve
+        return solve(form_factors, reflectance, E0, **kwargs)  # type: ignore[arg-type]
     E1 = solve(form_factors, reflectance, E0, **kwargs)  # type: ignore[arg-type]
     beta = _ratio(E1 - E0, row_sums.detach().to(dtype)[:, None], L_sky[..., None, :])
     g = (g_esc + beta * (g_rows - g_esc)).clamp_min(0.0)
     return solve(form_factors, reflectance, math.pi * g * L_sky[..., None, :], **kwargs)  # type: ignore[arg-type]
+
+
+def _estimates(escape: Tensor, rows: Tensor, shape: tuple[int, ...], what: str) -> tuple[Tensor, Tensor]:
+    """The two estimates as real tensors, checked to have ``shape``."""
+    out = as_real_tensor(escape, "escape"), as_real_tensor(rows, "rows")
+    for name, g in zip(("escape", "rows"), out, strict=True):
+        if tuple(g.shape) != shape:
+            dims = "[F, nb]" if len(shape) == 2 else "[F]"
+            raise ShapeError(f"{name} must have shape {dims} = {list(shape)} ({what}); got {list(g.shape)}")
+    return out
 
 
 def _radiance(radiance: Tensor | float) -> Tensor:
