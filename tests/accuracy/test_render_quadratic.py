@@ -72,6 +72,27 @@ def test_auto_picks_the_basis():
         ti.render(groove, r, "uniform", ONE, wavelengths=WL, basis="cubic")
 
 
+def test_a_bright_scene_skips_the_constant_first_look(groove, monkeypatch):
+    """``auto``'s first look on the constant basis is taken below ``PROBE_REFLECTANCE`` (here it meets 5e-2: a-priori
+    3.5 % at r = 0.69) and skipped from it on (3.6 % at r = 0.7, met too, but on the benchmark's scenes it no longer
+    met any request from there), with the polynomial plan meeting the request instead."""
+    import sys
+
+    from torch_interreflect.accuracy.moments_settings import PROBE_REFLECTANCE, constant_probe_pays
+
+    plan_module = sys.modules["torch_interreflect.accuracy.plan"]
+    looks: list = []
+    real = plan_module.refine
+    monkeypatch.setattr(plan_module, "refine", lambda *a, **k: looks.append(1) or real(*a, **k))
+    below = ti.accuracy.plan(groove, torch.full((8,), 0.69, dtype=D), "uniform", ONE, wavelengths=WL, accuracy=5e-2)
+    assert len(looks) == 1 and below.degree == 0 and below.report.reached
+    at = ti.accuracy.plan(groove, torch.full((8,), 0.7, dtype=D), "uniform", ONE, wavelengths=WL, accuracy=5e-2)
+    assert len(looks) == 1 and at.degree in (1, 2) and at.report.reached
+    assert PROBE_REFLECTANCE == 0.7 and constant_probe_pays(torch.zeros(0, 1, dtype=D))
+    assert constant_probe_pays(torch.tensor([[0.1, 0.69]], dtype=D))
+    assert not constant_probe_pays(torch.tensor([[0.1, 0.7]], dtype=D))
+
+
 def test_a_shadow_edge_is_planned_by_halving():
     """A wall 5 cm above the floor casts a shadow edge across it (at x = 0.25): the degrees' difference does not
     bound the error there, so the planner splits every leaf and estimates from the change (``Q_HALVING``); no

@@ -17,7 +17,7 @@ from torch import Tensor
 from ..camera.rendering import render_view
 from ..camera.sensor import Camera
 from ..camera.view import View
-from ..errors import AccuracyWarning, ShapeError, ValueRangeError
+from ..errors import AccuracyWarning, ShapeError
 from ..formfactors.operator import FormFactors
 from ..formfactors.quadrature import form_factors
 from ..geometry._polygon import bilinear, bilinear_coordinates
@@ -27,9 +27,16 @@ from ..solver.moments import DENSE_MAX_UNKNOWNS, solve_moments
 from ..solver.sky import solve_moments_sky
 from .leaves import light_factor, rms
 from .moments_plan import leaf_light, moment_report, refine_moments
-from .moments_settings import moment_quadrature_tol, polynomial_allowed, smooth_light, solver_tolerance
+from .moments_settings import (
+    constant_probe_pays,
+    moment_quadrature_tol,
+    polynomial_allowed,
+    smooth_light,
+    solver_tolerance,
+)
 from .refine import AMPLIFICATION, Problem, Refinement, refine
 from .report import AccuracyReport, RenderResult
+from .request import check_request
 from .settings import Settings, budget_for, choose_settings, quadrature_tol_for
 from .wavelengths import grid_of, interp_matrix, spectra
 
@@ -293,19 +300,20 @@ def plan(
         torch.Size([8, 31])
     """
     t_start = time.perf_counter()
-    _check_request(scene, accuracy, max_facets)
+    check_request(scene, accuracy, max_facets)
     quadratic = polynomial_allowed(basis, scene, light)
     if quadratic and basis == "auto":
         # one solve on the constant basis, with its a-priori estimate, is cheaper still where it already meets the
         # request (dark scenes: 30 ms against 0.2 s for the 200-facet grooves at r = 0.2); it costs 10-30 ms where
         # it does not under a sun, 0.11-0.41 s under a sky (the Cornell box, the open room: without the sky's second
-        # cast, 0.29-0.99 s with it). Then the light's roughness decides how the polynomial basis estimates its error.
+        # cast, 0.29-0.99 s with it), so it is skipped on bright scenes (constant_probe_pays). Then the light's
+        # roughness decides how the polynomial basis estimates its error.
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", AccuracyWarning)
             pb0 = _problem(scene, reflectance, light, illuminant, camera, accuracy, wavelengths, extrapolate)
             probe = _plan_constant(pb0, light, max_facets, max_iterations=0, show=False, t_start=time.perf_counter(),
-                                   probe=True)
-        if probe.report.reached:
+                                   probe=True) if constant_probe_pays(pb0.r) else None
+        if probe is not None and probe.report.reached:
             return probe
     pb = _problem(scene, reflectance, light, illuminant, camera, accuracy, wavelengths, extrapolate and not quadratic)
     show = progress if progress is not None else scene.num_facets >= 2000 or accuracy < 3e-3
@@ -401,24 +409,6 @@ def _over_budget(report: AccuracyReport) -> str:
             "relative, measured by casting its rays again; refinement does not lower it)"
         )
     return "the error budget"
-
-
-def _check_request(scene: Scene, accuracy: float, max_facets: int) -> None:
-    """Typed errors for a request the planner cannot serve."""
-    if not isinstance(scene, Scene):
-        raise TypeError(f"plan expects a Scene; got {type(scene).__name__}")
-    if isinstance(accuracy, bool) or not isinstance(accuracy, (int, float)) or not math.isfinite(accuracy):
-        raise ValueRangeError(f"accuracy must be a finite number in (0, 0.5]; got {accuracy!r}")
-    if not (0 < accuracy <= 0.5):
-        raise ValueRangeError(f"accuracy must lie in (0, 0.5] (a relative error); got {accuracy}")
-    floor = 1e3 * torch.finfo(scene.dtype).eps
-    if accuracy < floor:
-        raise ValueRangeError(
-            f"accuracy {accuracy:.3g} is below what {scene.dtype} can resolve in this model (about {floor:.1g}: "
-            "quadrature, solver and averaging each lose a few digits); use a float64 scene or ask for less"
-        )
-    if not isinstance(max_facets, int) or max_facets < scene.num_facets:
-        raise ValueError(f"max_facets must be an integer >= the scene's {scene.num_facets} facets; got {max_facets!r}")
 
 
 def _problem(
