@@ -197,17 +197,33 @@ def hemisphere_rays(corners, normals, t1, t2, points, n, seed, eps, origin, dire
 
 
 @njit(cache=True, parallel=True)
-def hemisphere_sums(area, hit, n_dirs, out):
-    """``out[f] = Σ_p area[f, p] · mean_d hit[(f·P + p)·D + d]`` (hit: bool flat, in :func:`hemisphere_rays`'s
-    order)."""
+def hit_counts(tri, owner, direction, normals, n_dirs, escape, back):
+    """Per point of :func:`hemisphere_rays` (its ``n_dirs`` rays in a row): ``escape[q]``, the rays that hit nothing
+    (``tri < 0``), and ``back[q]``, the rays whose first hit is a facet's back (its normal along the ray). ``tri``:
+    Embree's triangle per ray, ``owner`` the facet of each triangle."""
+    for q in prange(escape.shape[0]):
+        e = 0
+        b = 0
+        for d in range(n_dirs):
+            r = q * n_dirs + d
+            t = tri[r]
+            if t < 0:
+                e += 1
+            else:
+                f = owner[t]
+                if (direction[r, 0] * normals[f, 0] + direction[r, 1] * normals[f, 1]
+                        + direction[r, 2] * normals[f, 2]) > 0:
+                    b += 1
+        escape[q] = e
+        back[q] = b
+
+
+@njit(cache=True, parallel=True)
+def hemisphere_count_sums(area, counts, n_dirs, out):
+    """``out[f] = Σ_p area[f, p] · counts[f, p] / n_dirs``: a facet's fraction from its points' ray counts."""
     K, P = area.shape
     for f in prange(K):
         acc = 0.0
         for p in range(P):
-            base = (f * P + p) * n_dirs
-            m = 0
-            for d in range(n_dirs):
-                if hit[base + d]:
-                    m += 1
-            acc += area[f, p] * m / n_dirs
+            acc += area[f, p] * counts[f, p] / n_dirs
         out[f] = acc

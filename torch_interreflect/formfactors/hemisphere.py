@@ -47,9 +47,9 @@ def _rotation(f: Tensor, seed: int) -> Tensor:
 def _hemisphere_hits(scene: Scene, idx: Tensor, samples: int, points: int, escape: bool, back: bool,
                      caster: Any, seed: int = 0) -> Iterator[tuple[int, int, np.ndarray, np.ndarray,
                                                                     dict[str, np.ndarray]]]:
-    """Rays of :func:`hemisphere_fractions` in chunks of facets: ``(start, count, origin, area, hits)`` with
-    ``origin [k·P·D, 3]`` (relative to the caster's origin), ``area [k, P]`` the points' area weights and ``hits``
-    the ``"escape"`` / ``"back"`` booleans ``[k·P·D]`` asked for. ``seed``: the samples' rotation
+    """Rays of :func:`hemisphere_fractions` in chunks of facets: ``(start, count, origin, area, counts)`` with
+    ``origin [k·P·D, 3]`` (relative to the caster's origin), ``area [k, P]`` the points' area weights and ``counts``
+    the ``"escape"`` / ``"back"`` rays per point ``[k, P]`` (int) asked for. ``seed``: the samples' rotation
     (:func:`_rotation`)."""
     check_count(samples, "samples")
     check_count(points, "points")
@@ -73,17 +73,25 @@ def _hemisphere_hits(scene: Scene, idx: Tensor, samples: int, points: int, escap
         else:
             launch(kern.hemisphere_rays, *args, points, samples, rotation.numpy(), float(caster.eps), origin,
                    direction, area)
-        hits: dict[str, np.ndarray] = {}
+        counts: dict[str, np.ndarray] = {}
         if escape and not back:
-            hits["escape"] = ~caster.occluded(origin, direction, np.full(len(origin), 4.0 * caster.size,
-                                                                         dtype=np.float32))
-        if back:  # both from one first-hit cast where both are asked for (a ray escapes where it hits nothing)
+            free = ~caster.occluded(origin, direction, np.full(len(origin), 4.0 * caster.size, dtype=np.float32))
+            counts["escape"] = free.reshape(k, P, D).sum(-1)
+        elif kern is not None:  # both from one first-hit cast, counted per point in one compiled pass
+            tri = caster.hit_triangles(origin, direction)
+            esc, bck = np.empty((k, P), dtype=np.int64), np.empty((k, P), dtype=np.int64)
+            launch(kern.hit_counts, tri, caster.owner, direction, normals.numpy(), D, esc.reshape(-1),
+                   bck.reshape(-1))
+            counts["back"] = bck
+            if escape:
+                counts["escape"] = esc
+        else:  # a ray escapes where it hits nothing
             facet = caster.hit_facets(origin, direction)
             nrm = normals.numpy()[np.maximum(facet, 0)]
-            hits["back"] = (facet >= 0) & ((direction * nrm).sum(-1) > 0)
+            counts["back"] = ((facet >= 0) & ((direction * nrm).sum(-1) > 0)).reshape(k, P, D).sum(-1)
             if escape:
-                hits["escape"] = facet < 0
-        yield s, k, origin, area, hits
+                counts["escape"] = (facet < 0).reshape(k, P, D).sum(-1)
+        yield s, k, origin, area, counts
 
 
 def hemisphere_fractions(scene: Scene, idx: Tensor, *, samples: int, points: int, escape: bool = True,
@@ -113,16 +121,16 @@ def hemisphere_fractions(scene: Scene, idx: Tensor, *, samples: int, points: int
     """
     caster = caster if caster is not None else RayCaster(scene.to(torch.float64).to("cpu"))
     kern = loops("visibility")
-    K, P, D = idx.numel(), points * points, samples * samples
+    K, D = idx.numel(), samples * samples
     out = {"escape": torch.empty(K, dtype=torch.float64) if escape else None,
            "back": torch.empty(K, dtype=torch.float64) if back else None}
-    for s, k, _, area, hits in _hemisphere_hits(scene, idx, samples, points, escape, back, caster):
-        for flag, hit in hits.items():
+    for s, k, _, area, counts in _hemisphere_hits(scene, idx, samples, points, escape, back, caster):
+        for flag, count in counts.items():
             res = torch.empty(k, dtype=torch.float64)
             if kern is None:
-                res = torch.as_tensor((area * hit.reshape(k, P, D).mean(-1)).sum(-1))
+                res = torch.as_tensor((area * (count / D)).sum(-1))
             else:
-                launch(kern.hemisphere_sums, area, hit, D, res.numpy())
+                launch(kern.hemisphere_count_sums, area, count, D, res.numpy())
             out[flag][s : s + k] = res  # type: ignore[index]
     return out["escape"], out["back"]
 
@@ -146,12 +154,12 @@ def hemisphere_point_fractions(scene: Scene, idx: Tensor, *, samples: int, point
         if want:
             out[flag] = torch.empty(K, P, dtype=torch.float64)
     nrm = sc.normals.detach()
-    for s, k, origin, area, hits in _hemisphere_hits(sc, idx, samples, points, escape, back, caster, seed):
+    for s, k, origin, area, counts in _hemisphere_hits(sc, idx, samples, points, escape, back, caster, seed):
         first = torch.from_numpy(origin.reshape(k, P, D, 3)[:, :, 0].astype(np.float64))
         out["points"][s : s + k] = first + torch.as_tensor(caster.origin) - caster.eps * nrm[idx[s : s + k], None, :]
         out["weights"][s : s + k] = torch.from_numpy(area)
-        for flag, hit in hits.items():
-            out[flag][s : s + k] = torch.from_numpy(hit.reshape(k, P, D).mean(-1))
+        for flag, count in counts.items():
+            out[flag][s : s + k] = torch.from_numpy(count / D)
     return out
 
 

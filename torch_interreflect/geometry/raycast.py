@@ -62,6 +62,8 @@ class RayCaster:
 
         mesh, owner = scene.to_trimesh()
         self._owner = np.asarray(owner, dtype=np.int64)
+        #: the facet of each of Embree's triangles (for :meth:`hit_triangles`)
+        self.owner = self._owner
         tris = np.asarray(mesh.triangles, dtype=np.float64)
         self._origin = tris.reshape(-1, 3).mean(0)  # re-centre: float32 keeps more digits near 0
         #: the point (m) that Embree's coordinates are relative to (see :meth:`occluded`)
@@ -125,10 +127,19 @@ class RayCaster:
         Returns:
             Facet indices ``[N]`` (int64).
         """
+        tri = self.hit_triangles(origins, directions)
+        return np.where(tri >= 0, self._owner[np.maximum(tri, 0)], -1)
+
+    def hit_triangles(self, origins: np.ndarray, directions: np.ndarray) -> np.ndarray:
+        """:meth:`hit_facets` before the triangles are mapped to their facets (:attr:`owner`): Embree's triangle
+        index per ray, ``-1`` where it escapes.
+
+        Shape:
+            - origins, directions: ``[N, 3]`` (float32, as for :meth:`hit_facets`); output ``[N]`` (int32)
+        """
         o = np.ascontiguousarray(origins, dtype=np.float32)
         d = np.ascontiguousarray(directions, dtype=np.float32)
-        tri = _run_split(self._hit_raw, len(o), o, d)
-        return np.where(tri >= 0, self._owner[np.maximum(tri, 0)], -1)
+        return _run_split(self._hit_raw, len(o), o, d)
 
     def _occluded_raw(self, o: np.ndarray, d: np.ndarray, t: np.ndarray) -> np.ndarray:
         return self._scene.run(np.ascontiguousarray(o), np.ascontiguousarray(d), dists=np.ascontiguousarray(t),
