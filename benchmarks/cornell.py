@@ -24,6 +24,10 @@ Usage: ``python -m benchmarks.cornell [--quick]`` (needs the bench extra) → ``
 
 from __future__ import annotations
 
+import os
+
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # before torch loads: see speed_vs_error.py
+
 import argparse
 import ast
 from pathlib import Path
@@ -42,14 +46,16 @@ from .speed_vs_error import time_at_error
 
 RESULTS = Path(__file__).resolve().parent / "results"
 VARIANTS = 100
-#: (quadrature tol, sky directions per axis, weighed) of the quadratic rows on a uniform subdivision; *weighed*: the
-#: sky's two estimates of its open part weighed per facet (``sky_estimates`` and ``solve_moments_sky``), else the
-#: escaping rays' count (``light_moments``)
-QUADRATIC_SETTINGS = ((1e-5, 16, False), (1e-4, 16, False), (1e-5, 8, False), (1e-4, 8, False), (1e-4, 16, True),
-                      (1e-4, 8, True))
-#: the same on a subdivision to a size
-SIZED_SETTINGS = ((1e-4, 16, False), (1e-4, 8, False), (1e-3, 8, False), (1e-4, 16, True), (1e-4, 8, True),
-                  (1e-3, 8, True), (1e-3, 4, True))
+#: (quadrature tol, sky directions per axis, weighed, degree, visibility rays per side) of the polynomial rows on a
+#: uniform subdivision; *weighed*: the sky's two estimates of its open part weighed per facet (``sky_estimates`` and
+#: ``solve_moments_sky``), else the escaping rays' count (``light_moments``)
+QUADRATIC_SETTINGS = ((1e-5, 16, False, 2, 3), (1e-4, 16, False, 2, 3), (1e-5, 8, False, 2, 3), (1e-4, 8, False, 2, 3),
+                      (1e-4, 16, True, 2, 3), (1e-4, 8, True, 2, 3))
+#: the same on a subdivision to a size, with the cheapest settings at 1 %: tol 1e-2, 2 × 2 visibility rays, and the
+#: linear basis (degree 1: a third of the unknowns)
+SIZED_SETTINGS = ((1e-4, 16, False, 2, 3), (1e-4, 8, False, 2, 3), (1e-3, 8, False, 2, 3), (1e-4, 16, True, 2, 3),
+                  (1e-4, 8, True, 2, 3), (1e-3, 8, True, 2, 3), (1e-3, 4, True, 2, 3), (1e-2, 8, False, 2, 2),
+                  (1e-2, 4, True, 2, 2), (1e-2, 8, True, 1, 2), (1e-2, 4, True, 1, 2))
 #: Seeds of the quadratic rows' rays (visibility and sky), as many draws as Mitsuba's rows have: each row's error is
 #: the RMS over them (one draw's error is a lucky or unlucky sample: at 56 pieces, tol 1e-3, sky 8², r = 0.9 the
 #: draws of seeds 0-5 were 0.76-1.85 % from the reference), its time that of seed 0.
@@ -120,10 +126,10 @@ def ours_quadratic(name: str, ks: list[int], sizes: list[float]) -> list[dict]:
     grey[0] = r
     rows = []
     for label, fine, top, settings in quadratic_meshes(scene, ks, sizes):
-        for tol, sky, weighed in settings:
+        for tol, sky, weighed, degree, vis in settings:
 
-            def kernel(fine=fine, tol=tol, sky=sky, weighed=weighed, seed=0):
-                K = moment_form_factors(fine, 2, quadrature_tol=tol, seed=seed)
+            def kernel(fine=fine, tol=tol, sky=sky, weighed=weighed, degree=degree, vis=vis, seed=0):
+                K = moment_form_factors(fine, degree, quadrature_tol=tol, seed=seed, visibility_samples=vis)
                 if weighed:
                     return K, sky_estimates(fine, K, sky_samples=sky, sky_seed=seed)
                 return K, (light_moments(fine, K, "sky", sky_samples=sky, sky_seed=seed) * radiance)[..., None]
@@ -146,8 +152,9 @@ def ours_quadratic(name: str, ks: list[int], sizes: list[float]) -> list[dict]:
                 c = facet_averages(solve(K, refl[0], e0))
                 errs.append(rel_errors(area_average(c, top, fine.areas, scene.num_facets).numpy().reshape(-1),
                                        e_ref)[0])
-            how = ", weighed" if weighed else ""
-            rows.append({"scene": name, "who": "ours", "setting": f"{label}, quadratic, tol {tol:g}, sky {sky}²{how}",
+            how = (f", {vis}² rays" if vis != 3 else "") + (", weighed" if weighed else "")
+            basis = "quadratic" if degree == 2 else "linear"
+            rows.append({"scene": name, "who": "ours", "setting": f"{label}, {basis}, tol {tol:g}, sky {sky}²{how}",
                          "facets": fine.num_facets, "error": float(np.sqrt(np.mean(np.square(errs)))),
                          "error_max": float(max(errs)), "one": t_kernel + t_one,
                          "kernel": t_kernel, "solve": t_one, "variants": t_kernel + t_all})
@@ -220,10 +227,11 @@ def write(path: Path, rows: list[dict]) -> None:
         "rays every time). *one*: kernel + light + one solve (ours), one render (Mitsuba);",
         f"*{VARIANTS} variants*: kernel + light + one batched solve of {VARIANTS} reflectance draws (ours),",
         f"{VARIANTS} renders (Mitsuba, multijitter sampler). Ours on the constant basis, or on the quadratic one",
-        "(`quadratic`: degree-2 moments, 3 × 3 visibility rays, at quadrature tol 1e-5 or 1e-4 and 16² or 8² sky",
-        "directions from 8² points per piece) on the box split at its contacts and then subdivided: uniformly",
-        "(`subdivide(k)`: every piece k × k) or to a size (`subdivide_to(h)`: every piece cut until its edges are at",
-        "most h metres; there also at tol 1e-3). *weighed*: the sky's open part from its two estimates weighed per",
+        "(`quadratic`: degree-2 moments, 3 × 3 visibility rays unless a row says `2² rays`, at quadrature tol 1e-5 or",
+        "1e-4 and 16² or 8² sky directions from 8² points per piece) on the box split at its contacts and then",
+        "subdivided: uniformly (`subdivide(k)`: every piece k × k) or to a size (`subdivide_to(h)`: every piece cut",
+        "until its edges are at most h metres; there also at tol 1e-3 and 1e-2, and on the `linear` basis, degree 1).",
+        "*weighed*: the sky's open part from its two estimates weighed per",
         "facet (`sky_estimates`, `solve_moments_sky`: one more solve, counted), else from its escaping rays.",
         "*Mitsuba at equal error*: its time interpolated at our error (`t ∝ e⁻²` below its smallest measured error).",
         "",
