@@ -106,8 +106,7 @@ def test_inner_integral_of_one_is_lamberts_formula():
         nx = nx / nx.norm()
         mom = np.zeros(1)
         kern.inner_exact(x.numpy(), nx.numpy(), target.numpy(), 4, n_t.numpy(), np.array([0.5, 0.5, 0.0]),
-                         np.array([1.0, 0, 0]), np.array([0, 1.0, 0]), 1.0, 0, gx, gw, np.empty((8, 3)),
-                         np.empty((2, 8)), mom)
+                         np.array([1.0, 0, 0]), np.array([0, 1.0, 0]), 1.0, 0, gx, gw, np.empty((8, 3)), mom)
         clipped = clip_polygons(target[None], x[None], nx[None], 1e-15)
         exact = float(point_polygon_factor(x[None, None], nx[None], clipped))
         assert mom[0] == pytest.approx(exact, rel=1e-10, abs=1e-13)
@@ -123,7 +122,7 @@ def test_inner_integral_of_monomials_against_brute_force():
     gx, gw = np.polynomial.legendre.leggauss(20)
     mom = np.zeros(6)
     kern.inner_exact(x, nx, target.numpy(), 4, np.array([0, 0, 1.0]), c, e1, e2, inv_l, 2, gx, gw, np.empty((8, 3)),
-                     np.empty((2, 8)), mom)
+                     mom)
     u, v, w = quadrature_rule("plain", 200, F64, torch.device("cpu"))
     y, jac = bilinear(target[None], u, v)
     y, wy = y[0].numpy(), (w * jac[0]).numpy()

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 from numba import njit
 
 __all__ = ["KMAX", "clip_polygon", "frame_coords", "inner_exact"]
@@ -91,10 +92,10 @@ def _radial(h, R):
 
 
 @njit(cache=True)
-def inner_exact(x, nx, V, nv, nP, cj, e1, e2, inv_l, deg, gx, gw, W, ST, mom):
+def inner_exact(x, nx, V, nv, nP, cj, e1, e2, inv_l, deg, gx, gw, W, mom):
     """``mom[d] = ∫_P k(x, y) m_d(y) dA_y`` over the target ``V[:nv]`` (normal ``nP``, frame ``cj, e1, e2``, ``1/L``)
     clipped at the horizon of ``x`` (normal ``nx``); radial integrals exact, angular by the rule ``gx, gw`` per edge.
-    ``W [KMAX, 3]``, ``ST [2, KMAX]``: scratch (the caller's, so that a point costs no allocation)."""
+    ``W``: scratch ``[KMAX, 3]``."""
     nb = 1 if deg == 0 else (3 if deg == 1 else 6)
     for d in range(nb):
         mom[d] = 0.0
@@ -109,7 +110,8 @@ def inner_exact(x, nx, V, nv, nP, cj, e1, e2, inv_l, deg, gx, gw, W, ST, mom):
     bt = nx[0] * e2[0] + nx[1] * e2[1] + nx[2] * e2[2]
     cc = nx[0] * nP[0] + nx[1] * nP[1] + nx[2] * nP[2]
     p0, q0 = frame_coords(y0, y1, y2, cj, e1, e2, inv_l)
-    S, T = ST[0], ST[1]
+    S = np.empty(KMAX)
+    T = np.empty(KMAX)
     area2 = 0.0
     for k in range(nw):
         d0, d1, d2 = W[k, 0] - y0, W[k, 1] - y1, W[k, 2] - y2

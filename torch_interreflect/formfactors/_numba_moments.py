@@ -79,20 +79,22 @@ def _rule_points(Cq, r0, r1, rule_u, rule_v, rule_w, X, Wt, n):
 
 @njit(cache=True)
 def outer_points(p, dom, tgt, kind, rule, shift, rule_off, rule_u, rule_v, rule_w, edge_rule, vertex_rule, corners,
-                 normals, X, Wt, Cq, V, W):
+                 normals, X, Wt):
     """The outer points ``X [n, 3]`` and area weights ``Wt [n]`` (m²) of pair ``p`` on its domain; returns ``n``.
-    ``Cq [4, 3]``, ``V, W [KMAX, 3]``: scratch.
 
     Kinds 0 and 1: the pair's rule on the domain quad (its corners rotated by ``shift``: the shared edge or
     vertex first). Kind 2: the domain clipped to the target's plane, as a fan of triangles from a vertex on that
     plane, the first triangle (whose edge lies on the plane) with the edge-graded rule, the others vertex-graded.
     """
     i, j = dom[p], tgt[p]
+    Cq = np.empty((4, 3))
     if kind[p] != 2:
         for k in range(4):
             kk = (k + shift[p]) % 4
             Cq[k, 0], Cq[k, 1], Cq[k, 2] = corners[i, kk, 0], corners[i, kk, 1], corners[i, kk, 2]
         return _rule_points(Cq, rule_off[rule[p]], rule_off[rule[p] + 1], rule_u, rule_v, rule_w, X, Wt, 0)
+    V = np.empty((KMAX, 3))
+    W = np.empty((KMAX, 3))
     for k in range(4):
         V[k, 0], V[k, 1], V[k, 2] = corners[i, k, 0], corners[i, k, 1], corners[i, k, 2]
     nP = normals[j]
@@ -162,90 +164,61 @@ def _sample(Cj, tri, ns, s, seed, p, o):
     return y0, y1, y2, jac * scale / (ns * ns)
 
 
-@njit(cache=True, inline="always")
-def _bounds(c, nc, n):
-    """Items ``[lo, hi)`` of chunk ``c`` of ``nc`` over ``n`` items. The parallel loops below run over ``nc`` chunks
-    (:func:`~.compiled.chunks`: a few per thread), each allocating its scratch once: per-item allocations cost more
-    than the work of a far pair and serialise the threads on the allocator, and a ``prange`` over the chunks still
-    gives every thread its contiguous share (:func:`~.compiled.dealt`)."""
-    return c * n // nc, (c + 1) * n // nc
-
-
 @njit(parallel=True, cache=True)
 def count_rays(sel, dom, tgt, kind, rule, shift, rule_off, rule_u, rule_v, rule_w, edge_rule, vertex_rule, corners,
-               normals, buf, counts, nc):
+               normals, buf, counts):
     """Outer points of each selected pair ``sel`` (``counts``, for the offsets of its rays)."""
-    for c in prange(nc):
-        X, Wt, Cq, Vo, Wo = np.empty((buf, 3)), np.empty(buf), np.empty((4, 3)), np.empty((KMAX, 3)), \
-            np.empty((KMAX, 3))
-        lo, hi = _bounds(c, nc, sel.shape[0])
-        for t in range(lo, hi):
-            counts[t] = outer_points(sel[t], dom, tgt, kind, rule, shift, rule_off, rule_u, rule_v, rule_w, edge_rule,
-                                     vertex_rule, corners, normals, X, Wt, Cq, Vo, Wo)
+    for t in prange(sel.shape[0]):
+        X = np.empty((buf, 3))
+        Wt = np.empty(buf)
+        counts[t] = outer_points(sel[t], dom, tgt, kind, rule, shift, rule_off, rule_u, rule_v, rule_w, edge_rule,
+                                 vertex_rule, corners, normals, X, Wt)
 
 
 @njit(parallel=True, cache=True)
 def build_rays(sel, start, dom, tgt, kind, rule, shift, rule_off, rule_u, rule_v, rule_w, edge_rule, vertex_rule,
-               corners, normals, triangle, ns, seed, eps, origin, buf, ro, rd, rt, nc):
+               corners, normals, triangle, ns, seed, eps, origin, buf, ro, rd, rt):
     """Rays from every outer point of the selected pairs to its ``ns²`` jittered target samples: origins (relative
     to ``origin``, nudged ``eps`` along the ray), unit directions and lengths (float32, ``rt ≤ 0``: no ray)."""
     n2 = ns * ns
-    for c in prange(nc):
-        X, Wt, Cq, Vo, Wo = np.empty((buf, 3)), np.empty(buf), np.empty((4, 3)), np.empty((KMAX, 3)), \
-            np.empty((KMAX, 3))
-        lo, hi = _bounds(c, nc, sel.shape[0])
-        for t in range(lo, hi):
-            p = sel[t]
-            n = outer_points(p, dom, tgt, kind, rule, shift, rule_off, rule_u, rule_v, rule_w, edge_rule, vertex_rule,
-                             corners, normals, X, Wt, Cq, Vo, Wo)
-            Cj = corners[tgt[p]]
-            tri = triangle[tgt[p]]
-            for o in range(n):
-                for s in range(n2):
-                    y0, y1, y2, _ = _sample(Cj, tri, ns, s, seed, p, o)
-                    d0, d1, d2 = y0 - X[o, 0], y1 - X[o, 1], y2 - X[o, 2]
-                    ln = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
-                    k = start[t] + o * n2 + s
-                    inv = 1.0 / max(ln, 1e-300)
-                    rd[k, 0], rd[k, 1], rd[k, 2] = d0 * inv, d1 * inv, d2 * inv
-                    ro[k, 0] = X[o, 0] - origin[0] + eps * d0 * inv
-                    ro[k, 1] = X[o, 1] - origin[1] + eps * d1 * inv
-                    ro[k, 2] = X[o, 2] - origin[2] + eps * d2 * inv
-                    rt[k] = ln - 2.0 * eps
+    for t in prange(sel.shape[0]):
+        p = sel[t]
+        X = np.empty((buf, 3))
+        Wt = np.empty(buf)
+        n = outer_points(p, dom, tgt, kind, rule, shift, rule_off, rule_u, rule_v, rule_w, edge_rule, vertex_rule,
+                         corners, normals, X, Wt)
+        Cj = corners[tgt[p]]
+        tri = triangle[tgt[p]]
+        for o in range(n):
+            for s in range(n2):
+                y0, y1, y2, _ = _sample(Cj, tri, ns, s, seed, p, o)
+                d0, d1, d2 = y0 - X[o, 0], y1 - X[o, 1], y2 - X[o, 2]
+                ln = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+                k = start[t] + o * n2 + s
+                inv = 1.0 / max(ln, 1e-300)
+                rd[k, 0], rd[k, 1], rd[k, 2] = d0 * inv, d1 * inv, d2 * inv
+                ro[k, 0] = X[o, 0] - origin[0] + eps * d0 * inv
+                ro[k, 1] = X[o, 1] - origin[1] + eps * d1 * inv
+                ro[k, 2] = X[o, 2] - origin[2] + eps * d2 * inv
+                rt[k] = ln - 2.0 * eps
 
 
-@njit(cache=True)
-def _far_pair(p, i, j, n, X, Wt, corners, normals, cent, e1, e2, inv_l, rule, rule_off, rule_u, rule_v, rule_w, deg,
-              nb, ys, wy, my_all, mx, my, mom, acc):
-    """Kind 1 (product Gauss): the pair's rule on the target too, its points and monomials once."""
-    ni, nj = normals[i], normals[j]
-    Cj = corners[j]
-    r = rule[p]
-    nq = rule_off[r + 1] - rule_off[r]
-    for qy in range(nq):  # the target's points once
-        y0, y1, y2, jy = _map(Cj, rule_u[rule_off[r] + qy], rule_v[rule_off[r] + qy])
-        ys[qy, 0], ys[qy, 1], ys[qy, 2] = y0, y1, y2
-        wy[qy] = rule_w[rule_off[r] + qy] * jy
-        py, qq = frame_coords(y0, y1, y2, cent[j], e1[j], e2[j], inv_l[j])
-        _monomials(py, qq, deg, my)
-        for d in range(nb):
-            my_all[qy, d] = my[d]
-    for o in range(n):
-        for d in range(nb):
-            mom[d] = 0.0
-        for qy in range(nq):
-            kv = _point_kernel(X[o, 0], X[o, 1], X[o, 2], ni, ys[qy, 0], ys[qy, 1], ys[qy, 2], nj) * wy[qy]
-            for d in range(nb):
-                mom[d] += kv * my_all[qy, d]
-        px, qx_ = frame_coords(X[o, 0], X[o, 1], X[o, 2], cent[i], e1[i], e2[i], inv_l[i])
-        _monomials(px, qx_, deg, mx)
-        _accumulate(acc, Wt[o], mx, mom, nb)
+@njit(cache=True, inline="always")
+def _outer_scratch(p, dom, tgt, kind, rule, shift, rule_off, rule_u, rule_v, rule_w, edge_rule, vertex_rule, corners,
+                   normals, buf, nb):
+    """The outer points of pair ``p`` (``X [buf, 3]``, weights ``Wt``, their count ``n``, :func:`outer_points`) and
+    the per-pair scratch of the moment loops: a point ``x [3]`` and three vectors of ``nb`` monomials."""
+    X = np.empty((buf, 3))
+    Wt = np.empty(buf)
+    n = outer_points(p, dom, tgt, kind, rule, shift, rule_off, rule_u, rule_v, rule_w, edge_rule, vertex_rule,
+                     corners, normals, X, Wt)
+    return n, X, Wt, np.empty(3), np.empty(nb), np.empty(nb), np.empty(nb)
 
 
 @njit(parallel=True, cache=True)
 def pair_moments(todo, dom, tgt, kind, rule, shift, fine, rule_off, rule_u, rule_v, rule_w, edge_rule, vertex_rule,
                  corners, normals, cent, e1, e2, inv_l, triangle, deg, gx, gw, gx_fine, gw_fine, buf, sel_of, ray_start,
-                 blocked, ns, seed, out, exact_out, nc):
+                 blocked, ns, seed, out, exact_out):
     """``out[p, c, d] = Σ_o w_o m_c(x_o) ∫_tgt k(x_o, y) V(x_o, y) m_d(y) dA`` (monomials of ``dom`` and ``tgt``; m²)
     for the pairs ``p`` in ``todo``.
 
@@ -262,50 +235,63 @@ def pair_moments(todo, dom, tgt, kind, rule, shift, fine, rule_off, rule_u, rule
     """
     nb = 1 if deg == 0 else (3 if deg == 1 else 6)
     n2 = ns * ns
-    nq_max = 1
-    for r in range(rule_off.shape[0] - 1):
-        nq_max = max(nq_max, rule_off[r + 1] - rule_off[r])
-    for c_ in prange(nc):
-        acc, acc_b = np.empty((nb, nb)), np.empty((nb, nb))
-        W, V, Cq, Vo, Wo = np.empty((KMAX, 3)), np.empty((KMAX, 3)), np.empty((4, 3)), np.empty((KMAX, 3)), \
-            np.empty((KMAX, 3))
-        X, Wt, x = np.empty((buf, 3)), np.empty(buf), np.empty(3)
-        mx, my, mom, ST = np.empty(nb), np.empty(nb), np.empty(nb), np.empty((2, KMAX))
-        ys, wy, my_all = np.empty((nq_max, 3)), np.empty(nq_max), np.empty((nq_max, nb))
-        lo, hi = _bounds(c_, nc, todo.shape[0])
-        for t_ in range(lo, hi):
-            p = todo[t_]
-            i, j = dom[p], tgt[p]
-            acc[:] = 0.0
-            n = outer_points(p, dom, tgt, kind, rule, shift, rule_off, rule_u, rule_v, rule_w, edge_rule, vertex_rule,
-                             corners, normals, X, Wt, Cq, Vo, Wo)
-            if kind[p] == 1:
-                _far_pair(p, i, j, n, X, Wt, corners, normals, cent, e1, e2, inv_l, rule, rule_off, rule_u, rule_v,
-                          rule_w, deg, nb, ys, wy, my_all, mx, my, mom, acc)
-            else:
-                ni, nj = normals[i], normals[j]
-                ax, aw = (gx_fine, gw_fine) if fine[p] else (gx, gw)
-                for k in range(4):
-                    V[k, 0], V[k, 1], V[k, 2] = corners[j, k, 0], corners[j, k, 1], corners[j, k, 2]
-                t = sel_of[p]
-                acc_b[:] = 0.0
-                for o in range(n):
-                    x[0], x[1], x[2] = X[o, 0], X[o, 1], X[o, 2]
-                    inner_exact(x, ni, V, 4, nj, cent[j], e1[j], e2[j], inv_l[j], deg, ax, aw, W, ST, mom)
-                    px, qx_ = frame_coords(x[0], x[1], x[2], cent[i], e1[i], e2[i], inv_l[i])
-                    _monomials(px, qx_, deg, mx)
-                    _accumulate(acc, Wt[o], mx, mom, nb)
-                    if t >= 0:
-                        _blocked_point(x, ni, nj, corners[j], triangle[j], cent[j], e1[j], e2[j], inv_l[j], deg, ns,
-                                       seed, p, o, blocked, ray_start[t] + o * n2, my, mom, acc_b, Wt[o], mx, nb)
-                if t >= 0:
-                    for c in range(nb):
-                        for d in range(nb):
-                            exact_out[t, c, d] = acc[c, d]
-                            acc[c, d] -= acc_b[c, d]
-            for c in range(nb):
+    for t_ in prange(todo.shape[0]):
+        p = todo[t_]
+        i, j = dom[p], tgt[p]
+        acc = np.zeros((nb, nb))
+        W = np.empty((KMAX, 3))
+        V = np.empty((KMAX, 3))
+        n, X, Wt, x, mx, my, mom = _outer_scratch(p, dom, tgt, kind, rule, shift, rule_off, rule_u, rule_v, rule_w,
+                                                  edge_rule, vertex_rule, corners, normals, buf, nb)
+        ni, nj = normals[i], normals[j]
+        if kind[p] == 1:
+            Cj = corners[j]
+            r = rule[p]
+            nq = rule_off[r + 1] - rule_off[r]
+            ys = np.empty((nq, 3))
+            wy = np.empty(nq)
+            my_all = np.empty((nq, nb))
+            for qy in range(nq):  # the target's points once
+                y0, y1, y2, jy = _map(Cj, rule_u[rule_off[r] + qy], rule_v[rule_off[r] + qy])
+                ys[qy, 0], ys[qy, 1], ys[qy, 2] = y0, y1, y2
+                wy[qy] = rule_w[rule_off[r] + qy] * jy
+                py, qq = frame_coords(y0, y1, y2, cent[j], e1[j], e2[j], inv_l[j])
+                _monomials(py, qq, deg, my)
                 for d in range(nb):
-                    out[p, c, d] = acc[c, d]
+                    my_all[qy, d] = my[d]
+            for o in range(n):
+                for d in range(nb):
+                    mom[d] = 0.0
+                for qy in range(nq):
+                    kv = _point_kernel(X[o, 0], X[o, 1], X[o, 2], ni, ys[qy, 0], ys[qy, 1], ys[qy, 2], nj) * wy[qy]
+                    for d in range(nb):
+                        mom[d] += kv * my_all[qy, d]
+                px, qx_ = frame_coords(X[o, 0], X[o, 1], X[o, 2], cent[i], e1[i], e2[i], inv_l[i])
+                _monomials(px, qx_, deg, mx)
+                _accumulate(acc, Wt[o], mx, mom, nb)
+        else:
+            ax, aw = (gx_fine, gw_fine) if fine[p] else (gx, gw)
+            for k in range(4):
+                V[k, 0], V[k, 1], V[k, 2] = corners[j, k, 0], corners[j, k, 1], corners[j, k, 2]
+            t = sel_of[p]
+            acc_b = np.zeros((nb, nb))
+            for o in range(n):
+                x[0], x[1], x[2] = X[o, 0], X[o, 1], X[o, 2]
+                inner_exact(x, ni, V, 4, nj, cent[j], e1[j], e2[j], inv_l[j], deg, ax, aw, W, mom)
+                px, qx_ = frame_coords(x[0], x[1], x[2], cent[i], e1[i], e2[i], inv_l[i])
+                _monomials(px, qx_, deg, mx)
+                _accumulate(acc, Wt[o], mx, mom, nb)
+                if t >= 0:
+                    _blocked_point(x, ni, nj, corners[j], triangle[j], cent[j], e1[j], e2[j], inv_l[j], deg, ns,
+                                   seed, p, o, blocked, ray_start[t] + o * n2, my, mom, acc_b, Wt[o], mx, nb)
+            if t >= 0:
+                for c in range(nb):
+                    for d in range(nb):
+                        exact_out[t, c, d] = acc[c, d]
+                        acc[c, d] -= acc_b[c, d]
+        for c in range(nb):
+            for d in range(nb):
+                out[p, c, d] = acc[c, d]
 
 
 @njit(cache=True, inline="always")
@@ -333,34 +319,28 @@ def _blocked_point(x, ni, nj, Cj, tri, cj, e1j, e2j, inv_lj, deg, ns, seed, p, o
 
 @njit(parallel=True, cache=True)
 def blocked_moments(sel, ray_start, dom, tgt, kind, rule, shift, rule_off, rule_u, rule_v, rule_w, edge_rule,
-                    vertex_rule, corners, normals, cent, e1, e2, inv_l, triangle, deg, buf, blocked, ns, seed, out, nc):
+                    vertex_rule, corners, normals, cent, e1, e2, inv_l, triangle, deg, buf, blocked, ns, seed, out):
     """``out[t] = Σ_o w_o m(x_o) ⊗ Σ_(blocked s) k(x_o, y_s) m(y_s) w_s``: the blocked part of the occluded pair
     ``sel[t]`` alone (its rays from ``ray_start[t]``), which :func:`pair_moments` subtracts from the exact moments;
     no exact inner integral is evaluated."""
     nb = 1 if deg == 0 else (3 if deg == 1 else 6)
     n2 = ns * ns
-    for c_ in prange(nc):
-        acc_b = np.empty((nb, nb))
-        X, Wt, Cq, Vo, Wo = np.empty((buf, 3)), np.empty(buf), np.empty((4, 3)), np.empty((KMAX, 3)), \
-            np.empty((KMAX, 3))
-        x, mx, my, mom = np.empty(3), np.empty(nb), np.empty(nb), np.empty(nb)
-        lo, hi = _bounds(c_, nc, sel.shape[0])
-        for t in range(lo, hi):
-            p = sel[t]
-            i, j = dom[p], tgt[p]
-            acc_b[:] = 0.0
-            n = outer_points(p, dom, tgt, kind, rule, shift, rule_off, rule_u, rule_v, rule_w, edge_rule, vertex_rule,
-                             corners, normals, X, Wt, Cq, Vo, Wo)
-            ni, nj = normals[i], normals[j]
-            for o in range(n):
-                x[0], x[1], x[2] = X[o, 0], X[o, 1], X[o, 2]
-                px, qx_ = frame_coords(x[0], x[1], x[2], cent[i], e1[i], e2[i], inv_l[i])
-                _monomials(px, qx_, deg, mx)
-                _blocked_point(x, ni, nj, corners[j], triangle[j], cent[j], e1[j], e2[j], inv_l[j], deg, ns, seed,
-                               p, o, blocked, ray_start[t] + o * n2, my, mom, acc_b, Wt[o], mx, nb)
-            for c in range(nb):
-                for d in range(nb):
-                    out[t, c, d] = acc_b[c, d]
+    for t in prange(sel.shape[0]):
+        p = sel[t]
+        i, j = dom[p], tgt[p]
+        acc_b = np.zeros((nb, nb))
+        n, X, Wt, x, mx, my, mom = _outer_scratch(p, dom, tgt, kind, rule, shift, rule_off, rule_u, rule_v, rule_w,
+                                                  edge_rule, vertex_rule, corners, normals, buf, nb)
+        ni, nj = normals[i], normals[j]
+        for o in range(n):
+            x[0], x[1], x[2] = X[o, 0], X[o, 1], X[o, 2]
+            px, qx_ = frame_coords(x[0], x[1], x[2], cent[i], e1[i], e2[i], inv_l[i])
+            _monomials(px, qx_, deg, mx)
+            _blocked_point(x, ni, nj, corners[j], triangle[j], cent[j], e1[j], e2[j], inv_l[j], deg, ns, seed, p, o,
+                           blocked, ray_start[t] + o * n2, my, mom, acc_b, Wt[o], mx, nb)
+        for c in range(nb):
+            for d in range(nb):
+                out[t, c, d] = acc_b[c, d]
 
 
 @njit(parallel=True, cache=True)

@@ -32,7 +32,7 @@ import torch
 
 from .._threads import work_threads
 
-__all__ = ["chunks", "dealt", "launch", "loops", "refresh_cache"]
+__all__ = ["dealt", "launch", "loops", "refresh_cache"]
 
 _MODULES = {"quadrature": "._numba_kernels", "pairs": "._numba_pairs", "visibility": "._numba_visibility",
             "shadows": "._numba_shadows", "moments": "._numba_moments"}
@@ -148,11 +148,3 @@ def dealt(items: np.ndarray) -> np.ndarray:
     if T == 1 or items.size <= T:
         return items
     return np.concatenate([items[k::T] for k in range(T)])
-
-
-def chunks(n: int) -> int:
-    """How many chunks a compiled loop over ``n`` items takes (``nc`` of the moments' loops): four per thread of
-    :func:`launch`, each allocating its scratch once. With a thread's scratch allocated per item, the 200-facet
-    V-groove's moments (10,000 pairs, nearly all far, tol 1e-3) took 19 ms on 2 threads against 25 ms on 1; chunked,
-    see ``benchmarks/results/kernel.md``."""
-    return max(1, min(int(n), 4 * _launch_threads()))

@@ -49,7 +49,7 @@ from ..geometry._polygon import plane_eps
 from ..geometry.raycast import RayCaster
 from ..geometry.scene import Scene
 from .basis import FacetBasis, basis_size, facet_basis
-from .compiled import chunks, dealt, launch, loops
+from .compiled import dealt, launch, loops
 from .moment_reuse import reuse_map, reused_sums
 from .operator import FormFactors
 from .pairs import classify_pairs, facing_pairs, order_pairs
@@ -284,7 +284,7 @@ def _cast(kern: Any, setup: dict[str, Any], sel: np.ndarray, ns: int, seed: int)
     counts = np.zeros(sel.size, dtype=np.int64)
     args = (*setup["pairs"], *setup["rules"], setup["corners"], setup["normals"])
     if sel.size:
-        launch(kern.count_rays, sel, *args, setup["buf"], counts, chunks(sel.size))
+        launch(kern.count_rays, sel, *args, setup["buf"], counts)
     per = counts * ns * ns
     ray_start = np.zeros(sel.size, dtype=np.int64)
     np.cumsum(per[:-1], out=ray_start[1:])
@@ -300,7 +300,7 @@ def _cast(kern: Any, setup: dict[str, Any], sel: np.ndarray, ns: int, seed: int)
         m = int(per[s0:s1].sum())
         ro, rd, rt = np.empty((m, 3), np.float32), np.empty((m, 3), np.float32), np.empty(m, np.float32)
         launch(kern.build_rays, sel[s0:s1], ray_start[s0:s1] - ray_start[s0], *args, tri, ns, seed,
-               float(caster.eps), origin, setup["buf"], ro, rd, rt, chunks(s1 - s0))
+               float(caster.eps), origin, setup["buf"], ro, rd, rt)
         blocked[ray_start[s0]:ray_start[s0] + m] = caster.occluded(ro, rd, rt)
         s0 = s1
     return ray_start, blocked
@@ -422,7 +422,7 @@ def resample_visibility(moments: MomentFormFactors, *, seed: int, visibility_sam
     if sel.size:
         launch(kern.blocked_moments, sel, ray_start, *setup["pairs"], *setup["rules"], setup["corners"],
                setup["normals"], *_frames(moments.basis), setup["triangle"], int(moments.basis.degree), setup["buf"],
-               blocked, ns, int(seed), part, chunks(sel.size))
+               blocked, ns, int(seed), part)
         acc[sel] = setup["exact"][setup["need_rank"][sel]] - part
     rays = int(blocked.size)
     G = _assemble(kern, sc, setup, moments.basis, acc, base=moments.matrix)
@@ -468,7 +468,7 @@ def _pair_sums(kern: Any, setup: dict[str, Any], basis: FacetBasis, todo: np.nda
     if todo.size:
         launch(kern.pair_moments, todo, *setup["pairs"], setup["fine"], *setup["rules"], setup["corners"],
                setup["normals"], *_frames(basis), tri, int(basis.degree), *setup["angular"], setup["buf"], sel_of,
-               ray_start, blocked, ns, seed, acc, exact, chunks(todo.size))
+               ray_start, blocked, ns, seed, acc, exact)
     if sel.size:
         setup["exact"][setup["need_rank"][sel]] = exact[:sel.size]
     return int(blocked.size)
