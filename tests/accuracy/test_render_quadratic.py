@@ -139,10 +139,10 @@ def _count_light_checks(monkeypatch) -> list:
 @pytest.mark.parametrize("name", ["cornell_sky_r9", "cornell_sky_r2"])
 def test_the_cornell_box_under_a_sky_meets_the_request(name, monkeypatch):
     """Against the stored converged Mitsuba reference (noise 0.02 %): the sky through blockable pairs and the blocks'
-    contacts make the light rough, so ``auto`` plans by halving. Measured at 1e-2: 0.062 % (r = 0.9, the sky's two
-    estimates weighed; 0.44 % before) and 0.30 % (r = 0.2) from Mitsuba in 200 and 212 leaves, estimated 0.49 % and
-    0.87 % (the constant basis had taken 4,448 leaves for 0.30 % at r = 0.9 and warned at r = 0.2 with an actual
-    3.4 %)."""
+    contacts make the light rough, so ``auto`` plans by halving. Measured at 1e-2: 0.27 % (r = 0.9, the sky's two
+    estimates weighed, its first rays fewer at this request: 0.062 % with 16² directions) and 0.30 % (r = 0.2) from
+    Mitsuba in 212 leaves each, estimated 0.89 % and 0.87 % (the constant basis had taken 4,448 leaves for 0.30 % at
+    r = 0.9 and warned at r = 0.2 with an actual 3.4 %)."""
     scene, spec, reference = _stored(name)
     level = torch.full((1,), spec["light"]["radiance"], dtype=D)
     r = torch.full((scene.num_facets,), spec["reflectance"], dtype=D)
@@ -155,6 +155,29 @@ def test_the_cornell_box_under_a_sky_meets_the_request(name, monkeypatch):
     assert not checks  # the constant basis's first look, a-priori 39-50 % off, casts the sky once, not twice
     assert rep.degree == 2 and rep.reached and rep.leaves <= 250
     assert actual <= 6e-3 and actual <= rep.estimated <= 1e-2
+
+
+def test_a_loose_request_under_a_weighed_sky_casts_fewer_sky_rays_first(monkeypatch):
+    """At 1e-2 and above, where the sky's two estimates are weighed, the first cast takes 8² directions (from 4² points
+    per leaf), a sixteenth of the 16² × 8² cast below it or with the escape count alone: on the Cornell box (r = 0.9)
+    every cast of the render, the replica's included, stays at 8 (0.27 % from Mitsuba, see the test above)."""
+    import sys
+
+    from torch_interreflect.accuracy.ray_counts import LOOSE_SKY_SAMPLES, SKY_SAMPLES, first_sky_samples
+
+    assert (LOOSE_SKY_SAMPLES, SKY_SAMPLES) == (8, 16)
+    assert first_sky_samples(1e-2, True) == 8 and first_sky_samples(0.2, True) == 8
+    assert first_sky_samples(9.9e-3, True) == 16 and first_sky_samples(1e-2, False) == 16
+    plan_module = sys.modules["torch_interreflect.accuracy.moments_plan"]
+    casts: list = []
+    real = plan_module.sky_rays
+    monkeypatch.setattr(plan_module, "sky_rays",
+                        lambda *a, **k: casts.append((k["samples"], k["points"])) or real(*a, **k))
+    scene, spec, _ = _stored("cornell_sky_r9")
+    level = torch.full((1,), spec["light"]["radiance"], dtype=D)
+    r = torch.full((scene.num_facets,), spec["reflectance"], dtype=D)
+    assert ti.render(scene, r, "sky", level, wavelengths=WL, accuracy=1e-2).report.reached
+    assert len(casts) >= 3 and set(casts) == {(8, 4)}
 
 
 def test_a_bright_sky_lit_plan_weighs_the_sky_s_two_estimates():

@@ -79,8 +79,8 @@ from .ray_counts import (
     MAX_SKY_SAMPLES,
     MAX_VISIBILITY_SAMPLES,
     RAY_MARGIN,
-    SKY_SAMPLES,
     VISIBILITY_SAMPLES,
+    first_sky_samples,
     grown,
     more_samples,
     sky_cost,
@@ -217,7 +217,7 @@ class _Level:
         return self.K.degree
 
 
-def _level(pb: Problem, leaves: Leaves, share: float, seed: int = 0, sky_samples: int = SKY_SAMPLES,
+def _level(pb: Problem, leaves: Leaves, share: float, seed: int = 0, sky_samples: int | None = None,
            visibility: int = VISIBILITY_SAMPLES, like: MomentFormFactors | None = None,
            degree: int | None = None, moments: MomentFormFactors | None = None,
            previous: MomentFormFactors | None = None, sky: SkyRays | None = None) -> _Level:
@@ -228,7 +228,7 @@ def _level(pb: Problem, leaves: Leaves, share: float, seed: int = 0, sky_samples
     estimate: a check of the rays). ``moments``: these leaves' moments, taken as they are (a check of the sky's
     directions alone). ``previous``: the moments of the leaves before their last split, made with the same settings:
     the pairs of two leaves kept by the split (``leaves.kept``) take their sums from there. ``sky``: the sky's
-    ray-cast part already cast on these leaves (cast with ``sky_samples`` otherwise)."""
+    ray-cast part already cast on these leaves (cast with ``sky_samples`` otherwise: :func:`_sky_start` when None)."""
     t = time.perf_counter()
     if moments is not None:
         K = moments
@@ -242,6 +242,7 @@ def _level(pb: Problem, leaves: Leaves, share: float, seed: int = 0, sky_samples
     t = time.perf_counter()
     is_sun = sun_direction(pb.light, pb.F) is not None  # decided on the user's facets, not the leaves' count
     if sky is None and _is_sky(pb):
+        sky_samples = _sky_start(pb) if sky_samples is None else sky_samples
         sky = sky_rays(leaves.scene, K, samples=sky_samples, points=sky_points(sky_samples), rows=_weighed(pb))
     g, rough_leaf = light_moments(leaves.scene, K, leaf_light(pb.light, leaves.user, pb.F), rough=True,
                                   direction=is_sun, sky=sky)  # type: ignore[misc]
@@ -298,6 +299,11 @@ def _weighed(pb: Problem) -> bool:
     return _is_sky(pb) and bool(pb.r.numel()) and float(pb.r.max()) >= WEIGH_REFLECTANCE
 
 
+def _sky_start(pb: Problem) -> int:
+    """The sky's directions per axis at first (:func:`~.ray_counts.first_sky_samples`)."""
+    return first_sky_samples(pb.accuracy, _weighed(pb))
+
+
 def refine_moments(pb: Problem, *, max_unknowns: int, max_iterations: int, show: bool,
                    t_start: float, halving: bool = False) -> MomentRefinement:
     """Refine until the estimated discretisation error is within its share of the request (module docstring).
@@ -338,7 +344,7 @@ def refine_moments(pb: Problem, *, max_unknowns: int, max_iterations: int, show:
                         "seconds": time.perf_counter() - t_start})
         bar.update(1)
         if disc <= share and not halving and first is None and _occluded(lv):
-            first = _replicas(pb, leaves, lv, share, VISIBILITY_SAMPLES, SKY_SAMPLES)
+            first = _replicas(pb, leaves, lv, share, VISIBILITY_SAMPLES, _sky_start(pb))
             room = pb.accuracy - kernel_part(pb) - solver_part(pb) - RAY_MARGIN * rms(first.parts[0] + first.parts[1])
             if disc > room >= RAY_FIRST_SHARE * pb.accuracy:  # the rays would have to grow: refine instead
                 share = room
@@ -417,7 +423,7 @@ def _ray_parts(pb: Problem, leaves: Leaves, lv: _Level, est: Tensor, share: floa
     level solved unless ``halving``); appends each growth to ``history``. ``first``: the replicas at the first counts
     already drawn on this level."""
     ray = torch.zeros(pb.F, dtype=torch.float64)
-    vis, sky = VISIBILITY_SAMPLES, SKY_SAMPLES
+    vis, sky = VISIBILITY_SAMPLES, _sky_start(pb)
     replica = 0
     while _occluded(lv):
         replica += 1
