@@ -24,7 +24,8 @@ facet's estimate is :data:`Q_HALVING` times the change of its output when its le
 carrying the excess are split again. On the
 Cornell box under a sky at 1e-2 this reaches 0.44 % / 0.30 % from Mitsuba (r = 0.9 / 0.2) with 200 / 212 leaves in
 1.4 s / 1.6 s, estimated 0.82 % / 0.87 % (the constant basis took 4,448 leaves and 28 s for 0.30 % at r = 0.9, and
-warned at r = 0.2 with an actual 3.4 %); with the sky's two estimates weighed (below), 0.057 % in 1.3 s at r = 0.9.
+warned at r = 0.2 with an actual 3.4 %); with the sky's two estimates weighed (below), 0.057 % in 1.3 s at r = 0.9,
+and 0.26 % in 0.57 s with the looser first cast of the sky at 1e-2 (:func:`~.ray_counts.first_sky_samples`).
 
 Rays (pairs that a third facet could block, and the sky's open part on their leaves where a facet's back may be in
 view) are sampled. At the last step both are drawn again at the same counts with other seeds (replicas,

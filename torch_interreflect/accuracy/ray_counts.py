@@ -90,7 +90,14 @@ def sky_cost(sky: SkyRays, samples: int) -> float:
 
 def first_sky_samples(accuracy: float, weighed: bool) -> int:
     """Directions per axis of the sky's first cast for a request: :data:`LOOSE_SKY_SAMPLES` where the two estimates
-    are ``weighed`` and ``accuracy ≥ LOOSE_SKY_ACCURACY``, else :data:`SKY_SAMPLES`."""
+    are ``weighed`` and ``accuracy ≥ LOOSE_SKY_ACCURACY``, else :data:`SKY_SAMPLES`.
+
+    Args:
+        accuracy: The requested relative error. weighed: Whether the sky's two estimates are weighed.
+
+    Returns:
+        Directions per axis (points per axis: :func:`sky_points`).
+    """
     return LOOSE_SKY_SAMPLES if weighed and accuracy >= LOOSE_SKY_ACCURACY else SKY_SAMPLES
 
 

@@ -62,7 +62,8 @@ class RayCaster:
 
         mesh, owner = scene.to_trimesh()
         self._owner = np.asarray(owner, dtype=np.int64)
-        #: the facet of each of Embree's triangles (for :meth:`hit_triangles`)
+        self._owner.flags.writeable = False
+        #: the facet of each of Embree's triangles (for :meth:`hit_triangles`; read-only)
         self.owner = self._owner
         tris = np.asarray(mesh.triangles, dtype=np.float64)
         self._origin = tris.reshape(-1, 3).mean(0)  # re-centre: float32 keeps more digits near 0
@@ -133,6 +134,13 @@ class RayCaster:
     def hit_triangles(self, origins: np.ndarray, directions: np.ndarray) -> np.ndarray:
         """:meth:`hit_facets` before the triangles are mapped to their facets (:attr:`owner`): Embree's triangle
         index per ray, ``-1`` where it escapes.
+
+        Args:
+            origins: Ray origins relative to :attr:`origin`, float32 (already offset off their facet).
+            directions: Unit directions, float32.
+
+        Returns:
+            Triangle indices (int32).
 
         Shape:
             - origins, directions: ``[N, 3]`` (float32, as for :meth:`hit_facets`); output ``[N]`` (int32)
