@@ -8,12 +8,12 @@ first variant). Two bases: the constant one (``form_factors``, ``lights.sky``, `
 (``moment_form_factors`` of degree 2 with 3 × 3 visibility rays, ``light_moments``, ``solve_moments``) at each of
 the settings :data:`QUADRATIC_SETTINGS`: quadrature tol 1e-5 with 16 × 16 sky directions (the settings ``render``
 starts from below 1e-2) and the cheaper tol 1e-4 and 8 × 8 directions, the sky's open part from its escaping rays
-or *weighed* (``sky_estimates`` and ``solve_moments_sky``: its two estimates weighed per facet, two solves; the time includes
-both). The quadratic basis also runs on the split box cut to a
-size instead (:func:`~torch_interreflect.geometry.subdivide_to`: the walls cut finer than the blocks' faces) at
+or *weighed* (``sky_estimates`` and ``solve_moments_sky``: its two estimates weighed per facet, two solves; the
+time includes both). The quadratic basis also runs on the split box cut to a size instead (:func:`~torch_interreflect.geometry.subdivide_to`: the walls cut finer than the blocks' faces) at
 :data:`SIZED_SETTINGS` (there also tol 1e-2 with 2 × 2 visibility rays, and the linear basis, degree 1); the
-polynomial rows draw their rays with :data:`SEEDS` and report the RMS error over the draws, as Mitsuba's rows do over theirs. At a requested error, the cheapest of all our rows that reaches it is taken
-(as Mitsuba's cheapest sample count is). *Mitsuba*: the batched
+polynomial rows draw their rays with :data:`SEEDS` and report the RMS error over the draws, as Mitsuba's rows do
+over theirs. At a requested error, the cheapest of all our rows that reaches it is taken (as Mitsuba's cheapest
+sample count is). *Mitsuba*: the batched
 irradiance-meter estimator (multijitter) of the 16 facets at a range of samples per facet, warm kernels; a variant
 is one more render (its scene build is not counted). Errors: relative RMS over the 16 facets against the cached
 converged references ``cornell_sky_r2`` / ``cornell_sky_r9``. Mitsuba's time at an error is interpolated log-log
