@@ -9,7 +9,8 @@ first variant). Two bases: the constant one (``form_factors``, ``lights.sky``, `
 the settings :data:`QUADRATIC_SETTINGS`: quadrature tol 1e-5 with 16 × 16 sky directions (the settings ``render``
 starts from below 1e-2) and the cheaper tol 1e-4 and 8 × 8 directions, the sky's open part from its escaping rays
 or *weighed* (``sky_estimates`` and ``solve_moments_sky``: its two estimates weighed per facet, two solves; the
-time includes both). The quadratic basis also runs on the split box cut to a size instead (:func:`~torch_interreflect.geometry.subdivide_to`: the walls cut finer than the blocks' faces) at
+time includes both). The quadratic basis also runs on the split box cut to a size instead
+(:func:`~torch_interreflect.geometry.subdivide_to`: the walls cut finer than the blocks' faces) at
 :data:`SIZED_SETTINGS` (there also tol 1e-2 with 2 × 2 visibility rays, and the linear basis, degree 1); the
 polynomial rows draw their rays with :data:`SEEDS` and report the RMS error over the draws, as Mitsuba's rows do
 over theirs. At a requested error, the cheapest of all our rows that reaches it is taken (as Mitsuba's cheapest
