@@ -14,8 +14,17 @@ from ..light_moments import light_is_rough
 from ..lights import sun_direction
 from .refine import Problem
 
-__all__ = ["PROBE_REFLECTANCE", "constant_probe_pays", "kernel_part", "moment_quadrature_tol", "polynomial_allowed",
-           "smooth_light", "solver_part", "solver_tolerance"]
+__all__ = [
+    "PROBE_ACCURACY",
+    "PROBE_REFLECTANCE",
+    "constant_probe_pays",
+    "kernel_part",
+    "moment_quadrature_tol",
+    "polynomial_allowed",
+    "smooth_light",
+    "solver_part",
+    "solver_tolerance",
+]
 
 #: Largest reflectance from which ``basis="auto"`` skips its first look on the constant basis. That look's estimate
 #: grows with the reflectance like the interreflected light: on the four held-out-style scenes of the accuracy
@@ -24,6 +33,8 @@ __all__ = ["PROBE_REFLECTANCE", "constant_probe_pays", "kernel_part", "moment_qu
 #: benchmark's requests (1e-2 and below), and at r = 0.9 it never met one there. It cost about a third of those
 #: renders (21 of 78 ms on the 30° groove at 2e-3, one thread).
 PROBE_REFLECTANCE = 0.7
+#: Loosest request at which bright scenes skip that look (the benchmark's loosest, where it was measured).
+PROBE_ACCURACY = 1e-2
 
 
 def moment_quadrature_tol(accuracy: float) -> float:
@@ -70,9 +81,9 @@ def polynomial_allowed(basis: str, scene: Scene, light: Any) -> bool:
 def constant_probe_pays(reflectance: Tensor, accuracy: float) -> bool:
     """Whether ``basis="auto"`` first solves once on the constant basis (kept where its a-priori estimate already
     meets the request: dark scenes, 30 ms against 0.2 s for the 200-facet grooves at r = 0.2): not where the largest
-    reflectance is :data:`PROBE_REFLECTANCE` or more and the request 1e-2 or tighter (the range measured; looser
-    requests keep the look, which can meet them there). Compared in the reflectance's own dtype: 0.7 in float32 is
-    0.69999999, below the threshold.
+    reflectance is :data:`PROBE_REFLECTANCE` or more and the request :data:`PROBE_ACCURACY` or tighter (the range
+    measured; looser requests keep the look, which can meet them there). Compared in the reflectance's own dtype:
+    0.7 in float32 is 0.69999999, below the threshold.
 
     Args:
         reflectance: Reflectance per facet and wavelength (``[F, L]``).
@@ -82,7 +93,7 @@ def constant_probe_pays(reflectance: Tensor, accuracy: float) -> bool:
         True where the look is taken.
     """
     bright = bool(reflectance.numel()) and float(reflectance.max()) >= PROBE_REFLECTANCE
-    return not (bright and accuracy <= 1e-2)
+    return not (bright and accuracy <= PROBE_ACCURACY)
 
 
 def smooth_light(scene: Scene, light: Any) -> bool:

@@ -173,6 +173,5 @@ class RayCaster:
             d = directions[s : s + batch]
             d = d / np.linalg.norm(d, axis=1, keepdims=True)
             o = origins[s : s + batch] + d * self.eps
-            tri = _run_split(self._hit_raw, len(o), o.astype(np.float32), d.astype(np.float32))
-            out[s : s + batch] = np.where(tri >= 0, self._owner[np.maximum(tri, 0)], -1)
+            out[s : s + batch] = self.hit_facets(o.astype(np.float32), d.astype(np.float32))
         return out
