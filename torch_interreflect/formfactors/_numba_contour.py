@@ -5,9 +5,10 @@ The target, clipped at the horizon of ``x``, is swept in polar coordinates aroun
 target's plane; along each ray the integrand is a polynomial of degree ≤ 3 in the distance ``ρ`` from ``y*`` over
 ``(h² + ρ²)²`` (``h`` the height of ``x``), whose radial integrals are elementary (:func:`_radial`); the angle is
 integrated by Gauss-Legendre per edge under ``σ = d sinh(u)`` (``σ`` the position along the edge, ``d`` its distance
-from ``y*``), which makes the angular integrand smooth at every scale, in panels at most :data:`_U_PANEL` wide (a
-point 1e-3 above a unit target, its horizon cutting the target 1e-3 away: 8 points per panel leave 9e-12 where one
-panel of 8 left 2e-3). For ``m = 1`` this is Lambert's point-to-polygon factor.
+from ``y*``), which makes the angular integrand smooth at every scale, in panels at most ``panel`` wide in ``u``
+(:func:`~torch_interreflect.formfactors.moments.angular_panel`: 2 to 4; a point 1e-3 above a unit target, its horizon
+cutting the target 1e-3 away: 8 points per panel 2 wide leave 9e-12 where one panel of 8 left 2e-3). For ``m = 1``
+this is Lambert's point-to-polygon factor.
 """
 
 from __future__ import annotations
@@ -27,8 +28,6 @@ KMAX = 8
 #: below this ``R / h`` the radial integrals are summed as series (:func:`_radial`)
 _SERIES_X = 0.1
 
-#: widest panel of the angular rule in ``u = asinh(σ / d)`` (an edge spanning more is split into equal panels)
-_U_PANEL = 2.0
 
 
 @njit(cache=True, inline="always")
@@ -92,10 +91,10 @@ def _radial(h, R):
 
 
 @njit(cache=True)
-def inner_exact(x, nx, V, nv, nP, cj, e1, e2, inv_l, deg, gx, gw, W, mom):
+def inner_exact(x, nx, V, nv, nP, cj, e1, e2, inv_l, deg, gx, gw, panel, W, mom):
     """``mom[d] = ∫_P k(x, y) m_d(y) dA_y`` over the target ``V[:nv]`` (normal ``nP``, frame ``cj, e1, e2``, ``1/L``)
-    clipped at the horizon of ``x`` (normal ``nx``); radial integrals exact, angular by the rule ``gx, gw`` per edge.
-    ``W``: scratch ``[KMAX, 3]``."""
+    clipped at the horizon of ``x`` (normal ``nx``); radial integrals exact, angular by the rule ``gx, gw`` on each
+    edge's panels at most ``panel`` wide in ``u``. ``W``: scratch ``[KMAX, 3]``."""
     nb = 1 if deg == 0 else (3 if deg == 1 else 6)
     for d in range(nb):
         mom[d] = 0.0
@@ -139,9 +138,9 @@ def inner_exact(x, nx, V, nv, nP, cj, e1, e2, inv_l, deg, gx, gw, W, mom):
         ua = math.asinh(sa / dist)
         ub = math.asinh(sb / dist)
         sign = orient if cross > 0 else -orient
-        # panels of at most _U_PANEL in u: an edge seen from close by (its length ≫ d) spans many, and the
+        # panels of at most `panel` in u: an edge seen from close by (its length ≫ d) spans many, and the
         # integrand changes where the ray's length passes the height h
-        npan = max(1, math.ceil((ub - ua) / _U_PANEL))
+        npan = max(1, math.ceil((ub - ua) / panel))
         half = 0.5 * (ub - ua) / npan
         for pan in range(npan):
             mid = ua + (2 * pan + 1) * half

@@ -217,14 +217,15 @@ def _outer_scratch(p, dom, tgt, kind, rule, shift, rule_off, rule_u, rule_v, rul
 
 @njit(parallel=True, cache=True)
 def pair_moments(todo, dom, tgt, kind, rule, shift, fine, rule_off, rule_u, rule_v, rule_w, edge_rule, vertex_rule,
-                 corners, normals, cent, e1, e2, inv_l, triangle, deg, gx, gw, gx_fine, gw_fine, buf, sel_of, ray_start,
-                 blocked, ns, seed, out, exact_out):
+                 corners, normals, cent, e1, e2, inv_l, triangle, deg, gx, gw, gx_fine, gw_fine, u_panel, buf, sel_of,
+                 ray_start, blocked, ns, seed, out, exact_out):
     """``out[p, c, d] = Σ_o w_o m_c(x_o) ∫_tgt k(x_o, y) V(x_o, y) m_d(y) dA`` (monomials of ``dom`` and ``tgt``; m²)
     for the pairs ``p`` in ``todo``.
 
     ``kind``: 0 exact inner on the whole domain, 1 product Gauss (the rule on both facets; far pairs), 2 exact
     inner on the domain clipped to the target's plane (:func:`outer_points`). ``fine[p]``: the angular rule
-    ``gx_fine, gw_fine`` (pairs that touch) instead of ``gx, gw``. Occluded pairs (``sel_of[p] ≥ 0``): the
+    ``gx_fine, gw_fine`` (pairs that touch) instead of ``gx, gw``, on panels at most ``u_panel`` wide
+    (:func:`._numba_contour.inner_exact`). Occluded pairs (``sel_of[p] ≥ 0``): the
     exact unoccluded moments less the blocked part, estimated from the ``ns²`` jittered samples per outer point
     (``blocked`` from ``ray_start[sel_of[p]]``, in :func:`build_rays`' order): an unbiased estimate, exact where
     nothing is blocked. Their exact unoccluded moments go to ``exact_out[sel_of[p]]`` as well, so that rays drawn
@@ -277,7 +278,7 @@ def pair_moments(todo, dom, tgt, kind, rule, shift, fine, rule_off, rule_u, rule
             acc_b = np.zeros((nb, nb))
             for o in range(n):
                 x[0], x[1], x[2] = X[o, 0], X[o, 1], X[o, 2]
-                inner_exact(x, ni, V, 4, nj, cent[j], e1[j], e2[j], inv_l[j], deg, ax, aw, W, mom)
+                inner_exact(x, ni, V, 4, nj, cent[j], e1[j], e2[j], inv_l[j], deg, ax, aw, u_panel, W, mom)
                 px, qx_ = frame_coords(x[0], x[1], x[2], cent[i], e1[i], e2[i], inv_l[i])
                 _monomials(px, qx_, deg, mx)
                 _accumulate(acc, Wt[o], mx, mom, nb)
