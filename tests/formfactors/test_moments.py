@@ -16,6 +16,7 @@ from torch_interreflect.errors import ShapeError, ValueRangeError
 from torch_interreflect.formfactors import facet_basis, moment_form_factors, point_polygon_factor
 from torch_interreflect.formfactors.compiled import loops
 from torch_interreflect.formfactors.rules import quadrature_rule
+from torch_interreflect.geometry import split_at_contacts, subdivide_to
 from torch_interreflect.geometry._polygon import bilinear, clip_polygons
 from torch_interreflect.geometry.raycast import RayCaster
 from torch_interreflect.light_moments import light_is_rough, light_moments
@@ -228,27 +229,49 @@ def _floor_and_wall(floor: list[tuple[float, float]], wall: list[tuple[float, fl
     return ti.Scene.from_polygons(torch.tensor(quads, dtype=F64))
 
 
+@pytest.mark.parametrize("basis", ["moments", "constant"])
 @pytest.mark.parametrize("wall", [(0.5, 1.5), (0.0, 1.5), (0.25, 0.75), (0.0, 0.6)])
-def test_partly_shared_edges_converge_as_their_conforming_split(wall):
+def test_partly_shared_edges_converge_as_their_conforming_split(wall, basis):
     """A floor from x = 0 to 1 and a wall along its edge over ``wall``: their edges share a segment (without a
     shared corner, from a shared corner, inside the floor's edge). The exchange ``A_i F_ij`` against the same plates
-    cut at each other's ends (every contact a whole edge or a corner) at tol 1e-9. Measured: ≤ 4.2e-5 at tol 1e-3,
-    ≤ 1.2e-7 at 1e-6; before the shared segment was graded, 2.1e-2 and 2.8e-3 without the shared corner, 2.5e-2
-    and 4.0e-3 with it."""
+    cut at each other's ends (every contact a whole edge or a corner) at tol 1e-9, on both bases (``moments``: the
+    degree-0 block of :func:`moment_form_factors`; ``constant``: :func:`ti.form_factors`). Measured: moments
+    ≤ 4.1e-5 at tol 1e-3 and ≤ 4.4e-9 at 1e-6, constant ≤ 9.5e-8 and ≤ 2.3e-9. Before the shared segments were
+    graded: moments 2.1e-2 / 2.8e-3 without the shared corner and 2.5e-2 / 4.0e-3 from it, constant 2.5e-2 / 4.0e-3
+    from it."""
     a, b = wall
     ends = sorted({0.0, 1.0, a, b})
     cut = lambda lo, hi: [(x, y) for x, y in itertools.pairwise(ends) if lo <= x and y <= hi]  # noqa: E731
 
     def exchange(scene: ti.Scene, tol: float, n_floor: int) -> float:
-        G = moment_form_factors(scene, 1, quadrature_tol=tol, occlusion=False)
-        F = G.constant().matrix
+        if basis == "moments":
+            F = moment_form_factors(scene, 1, quadrature_tol=tol, occlusion=False).constant().matrix
+        else:
+            F = ti.form_factors(scene, quadrature_tol=tol).matrix
         return float((scene.areas[:n_floor, None] * F[:n_floor, n_floor:]).sum())
 
     floor_cut = cut(0.0, 1.0)
     ref = exchange(_floor_and_wall(floor_cut, cut(a, b)), 1e-9, len(floor_cut))
     whole = _floor_and_wall([(0.0, 1.0)], [wall])
-    assert exchange(whole, 1e-3, 1) == pytest.approx(ref, rel=1e-4)
-    assert exchange(whole, 1e-6, 1) == pytest.approx(ref, rel=1e-6)
+    assert exchange(whole, 1e-3, 1) == pytest.approx(ref, rel=1e-4 if basis == "moments" else 1e-6)
+    assert exchange(whole, 1e-6, 1) == pytest.approx(ref, rel=1e-8)
+
+
+@pytest.mark.parametrize("degree", [0, 1])
+def test_far_pairs_keep_three_points_per_side_at_every_degree(degree):
+    """The Cornell box split at its contacts and cut to 0.4 m (65 pieces, no occlusion), every piece emitting,
+    r = 0.9: the pieces' averages at quadrature tol 1e-3 against tol 1e-9. Measured 9.0e-4 (degree 0) and 1.0e-3
+    (degree 1); with ``degree + 1`` points per side on far pairs, 0.34 and 1.1e-2."""
+    box = subdivide_to(split_at_contacts(ti.scenes.cornell_box(light=False, dtype=F64))[0], 0.4)[0]
+
+    def averages(tol: float) -> torch.Tensor:
+        K = moment_form_factors(box, degree, quadrature_tol=tol, occlusion=False)
+        e0 = torch.zeros(box.num_facets, K.size, 1, dtype=F64)
+        e0[:, 0] = 1.0
+        return facet_averages(solve_moments(K, torch.full((box.num_facets, 1), 0.9, dtype=F64), e0)).reshape(-1)
+
+    ref = averages(1e-9)
+    assert float(((averages(1e-3) - ref).abs() / ref).max()) <= 2e-3
 
 
 def test_visibility_converges_to_the_brute_force_value():

@@ -53,7 +53,7 @@ from .compiled import dealt, launch, loops
 from .moment_reuse import reuse_map, reused_sums
 from .operator import FormFactors
 from .pair_contacts import CUT_MIN, RuleTable, contacts
-from .pairs import classify_pairs, facing_pairs, order_pairs
+from .pairs import classify_pairs, corner_edge_contacts, facing_pairs, order_pairs
 from .rules import order_for
 from .visibility import blocker_candidates
 
@@ -66,6 +66,13 @@ RHO_FAR = 1.0
 #: Far pairs' product rule: the order that :func:`~torch_interreflect.formfactors.rules.order_for` gives for this
 #: many times the quadrature tolerance (measured: the V-groove's solution moves by < 1e-5 against ``1``).
 FAR_TOL_FACTOR = 100.0
+
+#: The far pairs' product rule has at least this many points per side, whatever the degree. Measured on the Cornell
+#: box split at its contacts and cut to 0.4 m (no occlusion, r = 0.9, every facet emitting; the largest error of a
+#: facet's average against quadrature tol 1e-10): with ``degree + 1`` points, degree 0 was 35 % off at tol 1e-2 and
+#: 1e-3, degree 1 0.86 % / 1.1 % / 0.83 % at 1e-2 / 1e-3 / 1e-4; with 3, 0.31 % / 0.090 % / 0.022 % and
+#: 0.41 % / 0.10 % / 0.024 % (degree 2, which had 3 already: 0.46 % / 0.13 % / 0.036 %).
+FAR_MIN_ORDER = 3
 
 #: Rays cast at once (each is ~ 32 bytes in the buffers).
 RAY_CHUNK = 1 << 21
@@ -186,6 +193,7 @@ def _pairs(sc: Scene, degree: int, tol: float, eps: float, occlusion: Literal["a
     iu, ju = facing_pairs(sc, eps, ("dense", 8))
     dom, tgt = order_pairs(sc.areas, iu, ju)
     cls = classify_pairs(sc, dom, tgt, tol, None, eps)
+    dom, tgt, cls = corner_edge_contacts(sc, dom, tgt, cls)
     radius = (sc.corners - sc.centroids[:, None, :]).norm(dim=-1).amax(1)
     near = (sc.centroids[dom] - sc.centroids[tgt]).norm(dim=-1) <= (radius[dom] + radius[tgt]) * (1 + 1e-6)
     dom, tgt, has_edge, has_vertex, shift, swapped, cut = contacts(
@@ -200,7 +208,8 @@ def _pairs(sc: Scene, degree: int, tol: float, eps: float, occlusion: Literal["a
         need = torch.ones(dom.numel(), dtype=torch.bool)
     else:
         need = blocker_candidates(sc, dom, tgt, eps)
-    order = torch.where(far, order_for(cls.rho, min(0.1, FAR_TOL_FACTOR * tol)), cls.order).clamp_min(degree + 1)
+    order = torch.where(far, order_for(cls.rho, min(0.1, FAR_TOL_FACTOR * tol)).clamp_min(FAR_MIN_ORDER),
+                        cls.order).clamp_min(degree + 1)
     kind = torch.where(clip_d, 2, torch.where(far & ~need, 1, 0))  # occluded pairs take the exact inner integral
     rules = RuleTable()
     key = torch.where(has_edge, -1, torch.where(has_vertex, -2, order))

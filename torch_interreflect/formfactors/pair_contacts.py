@@ -93,14 +93,15 @@ def contacts(sc: Scene, dom: Tensor, tgt: Tensor, touch_edge: Tensor, touch_vert
     """Contacts that the shared corners do not show (leaves of unequal refinement, a T-junction): an edge of the
     domain sharing a segment with an edge of the target (graded toward it; of the two, the shorter edge is the
     domain's, turning the pair around if need be), or else only a corner lying on the other's boundary (graded
-    toward it; a pair touched only from the target's side is turned around). A pair sharing one corner whose edges
-    also overlap along a line is an edge contact. Returns ``(dom, tgt, touch_edge, touch_vertex, shift, swapped,
+    toward it; a pair touched only from the target's side is turned around). Pairs that share a corner are left as
+    they are (:func:`~.pairs.corner_edge_contacts`). Returns ``(dom, tgt, touch_edge, touch_vertex, shift, swapped,
     cut)``.
 
     Measured on the Cornell box split at its contacts and cut to 0.4 m (65 pieces; 26 pairs share part of an edge,
-    which were graded toward a corner or not at all before): the rows of the form factors moved by up to 0.17 %
-    between quadrature tol 1e-10 and 1e-12 before (one form factor by 0.3 %), by 4e-9 now."""
-    idx = torch.nonzero(near & ~touch_edge).reshape(-1)
+    12 of them without a shared corner, which this grades, and 14 from a shared corner; before, all were graded
+    toward a corner or not at all): the rows of the moments' form factors moved by up to 0.17 % between quadrature
+    tol 1e-10 and 1e-12 before (one form factor by 0.3 %), by 4e-9 now."""
+    idx = torch.nonzero(near & ~touch_edge & ~touch_vertex).reshape(-1)
     swapped = torch.zeros(dom.numel(), dtype=torch.bool)
     cut = torch.tensor([0.0, 1.0], dtype=torch.float64).expand(dom.numel(), 2).clone()
     if idx.numel() == 0:
@@ -121,7 +122,6 @@ def contacts(sc: Scene, dom: Tensor, tgt: Tensor, touch_edge: Tensor, touch_vert
     dom[hit], tgt[hit] = tgt[hit], dom[hit].clone()
     swapped[hit] = True
     touch_edge[idx[e]] = True
-    touch_vertex[idx[e]] = False
     shift[idx[e]] = k_e[e]
     pick = lambda x: x.gather(1, k_e[:, None])[:, 0]  # noqa: E731
     cut[idx[e]] = torch.stack([torch.where(swap_e, pick(s0_t), pick(s0_d)),
@@ -129,7 +129,7 @@ def contacts(sc: Scene, dom: Tensor, tgt: Tensor, touch_edge: Tensor, touch_vert
     on_d = on_boundary(cd, ct, tol)  # domain corners on the target's boundary
     on_t = on_boundary(ct, cd, tol)
     for on, swap in ((on_d, False), (on_t, True)):
-        v = on.any(1) & ~e & ~touch_vertex[idx]
+        v = on.any(1) & ~e & ~touch_vertex[idx]  # (after the first pass: the pairs it made corner contacts)
         hit = idx[v]
         if swap:
             dom[hit], tgt[hit] = tgt[hit], dom[hit].clone()

@@ -42,7 +42,15 @@ from .compiled import launch, loops
 from .fused import Backend, fan_sums, group_sums, grouped_sums, resolve_backend
 from .montecarlo import monte_carlo
 from .operator import FormFactors
-from .pairs import SPARSE_DENSITY, PairClasses, classify_pairs, facing_pairs, order_pairs, rule_groups
+from .pairs import (
+    SPARSE_DENSITY,
+    PairClasses,
+    classify_pairs,
+    corner_edge_contacts,
+    facing_pairs,
+    order_pairs,
+    rule_groups,
+)
 from .rules import quadrature_rule
 from .visibility import VISIBILITY_ANGLE, PointVisibility, blocker_candidates, check_visibility_options
 from .visibility_grad import VISIBILITY_GRAD_POINTS, visibility_gradient
@@ -359,9 +367,10 @@ def pair_values(
     """``A_i F_ij`` for given pairs ``(iu, ju)`` of mutually facing facets of ``sc`` (float64, CPU).
 
     Returns ``(dom, tgt, value, need, vis)``: each pair reordered so that ``dom`` is the smaller facet (the
-    integration domain), ``value = A_dom F_dom,tgt`` (clamped at 0), ``need`` the pairs whose visibility came
-    from rays, and the visibility object (``vis`` when given, reused across calls). Adds ``points``,
-    ``seconds_quadrature``, ``seconds_visibility``, ``pairs_adjacent`` and ``pairs_clipped`` to ``info``
+    integration domain; or the one whose edge lies on the other's, :func:`~.pairs.corner_edge_contacts`),
+    ``value = A_dom F_dom,tgt`` (clamped at 0), ``need`` the pairs whose visibility came from rays, and the
+    visibility object (``vis`` when given, reused across calls). Adds ``points``, ``seconds_quadrature``,
+    ``seconds_visibility``, ``pairs_adjacent`` and ``pairs_clipped`` to ``info``
     (accumulating over calls). ``tol`` is the quadrature tolerance (``quadrature_tol`` of :func:`form_factors`);
     ``backend``, ``visibility_tol``, ``visibility_angle``, ``visibility_jitter``, ``visibility_grad_points``: see
     :func:`form_factors` (a ``vis`` given keeps its own; ``visibility_grad_points`` defaults to 0 here).
@@ -373,6 +382,7 @@ def pair_values(
     t = time.perf_counter()
     value = torch.empty(dom.numel(), dtype=torch.float64)  # A_dom F_dom,tgt
     cls = classify_pairs(sc, dom, tgt, tol, adjacent_order, eps)
+    dom, tgt, cls = corner_edge_contacts(sc, dom, tgt, cls)
     groups, clipped = rule_groups(cls)
 
     # occlusion: pairs that a third facet could block get a visible fraction at every quadrature point
