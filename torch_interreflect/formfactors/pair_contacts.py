@@ -108,6 +108,12 @@ def contacts(sc: Scene, dom: Tensor, tgt: Tensor, touch_edge: Tensor, touch_vert
         return dom, tgt, touch_edge, touch_vertex, shift, swapped, cut
     cd, ct = sc.corners[dom[idx]], sc.corners[tgt[idx]]
     tol = 1e-7 * torch.maximum(sc.diameters[dom[idx]], sc.diameters[tgt[idx]])
+    on_d = on_boundary(cd, ct, tol)  # domain corners on the target's boundary
+    on_t = on_boundary(ct, cd, tol)
+    some = on_d.any(1) | on_t.any(1)  # a shared segment ends at a corner of one of the two
+    if not bool(some.any()):
+        return dom, tgt, touch_edge, touch_vertex, shift, swapped, cut
+    idx, cd, ct, tol, on_d, on_t = idx[some], cd[some], ct[some], tol[some], on_d[some], on_t[some]
     dom, tgt, touch_edge, touch_vertex, shift = dom.clone(), tgt.clone(), touch_edge.clone(), touch_vertex.clone(), \
         shift.clone()
     (over_d, s0_d, s1_d), (over_t, s0_t, s1_t) = shared_segments(cd, ct, tol), shared_segments(ct, cd, tol)
@@ -126,8 +132,6 @@ def contacts(sc: Scene, dom: Tensor, tgt: Tensor, touch_edge: Tensor, touch_vert
     pick = lambda x: x.gather(1, k_e[:, None])[:, 0]  # noqa: E731
     cut[idx[e]] = torch.stack([torch.where(swap_e, pick(s0_t), pick(s0_d)),
                                torch.where(swap_e, pick(s1_t), pick(s1_d))], 1)[e]
-    on_d = on_boundary(cd, ct, tol)  # domain corners on the target's boundary
-    on_t = on_boundary(ct, cd, tol)
     for on, swap in ((on_d, False), (on_t, True)):
         v = on.any(1) & ~e & ~touch_vertex[idx]  # (after the first pass: the pairs it made corner contacts)
         hit = idx[v]
