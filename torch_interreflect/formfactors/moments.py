@@ -15,8 +15,9 @@ The facet averages ``c_{i 0}`` converge much faster with the degree than with re
 200 facets (r = 0.9, a sun), 1.70 % RMS with constants, 0.23 % with degree 1 and 0.044 % with degree 2, against
 degree 2 on the scene subdivided 4 × (README, "Accuracy as an input"; 0.032 % from Mitsuba).
 
-How each pair is integrated (one unordered pair at a time, the smaller facet outside, reciprocity for the other
-direction; pairs culled and classified as in :func:`~torch_interreflect.formfactors.form_factors`):
+How each pair is integrated (one unordered pair at a time, the smaller facet outside unless a contact along an
+edge makes the other the domain, :mod:`.pair_contacts`; reciprocity for the other direction; pairs culled and
+classified as in :func:`~torch_interreflect.formfactors.form_factors`):
 
 - near pairs (centroid distance under :data:`RHO_FAR` facet diameters, or touching, or straddling a plane): an outer
   Gauss rule on the domain (graded toward a shared edge or vertex; a domain partly behind the target's plane is
@@ -184,8 +185,9 @@ def _kernel() -> Any:
 
 
 def _pairs(sc: Scene, degree: int, tol: float, eps: float, occlusion: Literal["auto"] | bool) -> dict[str, Any]:
-    """The pairs of the moments, each unordered pair once with its domain (the smaller facet, or the one whose edge
-    lies on the other's: :func:`.pair_contacts.contacts`), its kind (0 exact inner, 1 product Gauss, 2 clipped
+    """The pairs of the moments, each unordered pair once with its domain (the smaller facet, or the one of the
+    shorter edge where two edges touch along a line: :func:`~.pairs.corner_edge_contacts`,
+    :func:`.pair_contacts.contacts`), its kind (0 exact inner, 1 product Gauss, 2 clipped
     domain), rule, rotation and angular rule, and which pairs need rays; in the arrays the compiled loops take.
     ``exact`` (indexed by ``need_rank``) will hold the occluded pairs' exact unoccluded sums, so their rays can be
     drawn again alone."""

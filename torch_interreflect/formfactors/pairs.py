@@ -161,7 +161,8 @@ def corner_edge_contacts(sc: Scene, dom: Tensor, tgt: Tensor, cls: PairClasses) 
     c = sc.corners.detach()
     tol = 1e-7 * torch.maximum(sc.diameters[dom[idx]], sc.diameters[tgt[idx]]).detach()
     over, s0, s1 = shared_segments(c[tgt[idx]], c[dom[idx]], tol)
-    turn = idx[(over & (s0 <= CUT_MIN) & (s1 >= 1.0 - CUT_MIN)).any(1)]  # a target edge wholly on the domain's
+    wholly = (over & (s0 <= CUT_MIN) & (s1 >= 1.0 - CUT_MIN)).any(1)  # a target edge wholly on the domain's
+    turn, t = idx[wholly], tol[wholly]
     if turn.numel() == 0:
         return dom, tgt, cls
     dom, tgt = dom.clone(), tgt.clone()
@@ -169,7 +170,6 @@ def corner_edge_contacts(sc: Scene, dom: Tensor, tgt: Tensor, cls: PairClasses) 
     clip_t, clip_d, shift = cls.clip_t.clone(), cls.clip_d.clone(), cls.shift.clone()
     clip_t[turn], clip_d[turn] = cls.clip_d[turn], cls.clip_t[turn]
     cd, ct = c[dom[turn]], c[tgt[turn]]
-    t = 1e-7 * torch.maximum(sc.diameters[dom[turn]], sc.diameters[tgt[turn]]).detach()
     shared = ((cd[:, :, None, :] - ct[:, None, :, :]).norm(dim=-1) <= t[:, None, None]).any(-1)
     shift[turn] = torch.argmax(shared.to(torch.int8), 1)  # the shared corner first, as classify_pairs puts it
     return dom, tgt, PairClasses(cls.order, cls.rho, cls.has_edge, cls.has_vertex, shift, clip_t, clip_d, cls.n_adj)

@@ -8,7 +8,8 @@
    the horizon of the integration facet where it crosses it) is integrated over the smaller facet of the
    pair with a Gauss-Legendre rule whose order follows the pair's distance / size ratio. Pairs that share an
    edge or a vertex get a rule graded toward the shared edge/vertex, where the integrand has its
-   logarithmic singularity. Reciprocity gives the other direction.
+   logarithmic singularity (a pair along one line from a shared corner over the facet of the shorter edge,
+   :func:`~.pairs.corner_edge_contacts`). Reciprocity gives the other direction.
 3. **Occlusion**: pairs that some third facet could block (its plane separates the two facets and its box
    overlaps theirs) get a fractional, kernel-weighted visibility from rays cast with Embree.
 
@@ -118,7 +119,7 @@ def form_factors(
             :func:`~torch_interreflect.formfactors.visibility.grid_offsets`) rather than to the cell midpoints, so
             the points of a pair sample the target at many more places and a thin blocker cannot hide (or miss)
             a whole target; ``False`` casts to the midpoints (the behaviour of 0.1).
-        visibility_grad_points: When the corners require grad: points per occluded pair (on the smaller facet)
+        visibility_grad_points: When the corners require grad: points per occluded pair (on the pair's domain)
             for the part of the gradient that ray-cast visibility leaves out (shadow edges moving, and the
             interior term's spread over the visible part; :mod:`~torch_interreflect.formfactors.visibility_grad`).
             ``0`` leaves it out (the interior term ``∂f · vis`` only, as in 0.1).
@@ -376,7 +377,8 @@ def pair_values(
     :func:`form_factors` (a ``vis`` given keeps its own; ``visibility_grad_points`` defaults to 0 here).
     """
     areas = sc.areas
-    # integrate over the smaller facet of each pair (the "domain"), contour over the other ("target")
+    # integrate over the smaller facet of each pair (the "domain"), contour over the other ("target"); pairs along
+    # one line from a shared corner are turned around below (corner_edge_contacts)
     dom, tgt = order_pairs(areas, iu, ju)
 
     t = time.perf_counter()
