@@ -13,7 +13,8 @@ from .columns import solve_columns
 from .info import warn_if_not_converged
 from .plan import SolvePlan, Stats
 
-__all__ = ["CsrMatmul", "InterreflectSolve", "SolveConfig", "apply_solve", "check_upstream_gradient", "matmul",
+__all__ = ["CsrMatmul", "InterreflectSolve", "SolveConfig", "apply_solve", "apply_solve_keeping",
+           "check_upstream_gradient", "matmul",
            "outer_on_pattern", "transposed_matmul"]
 
 
@@ -28,9 +29,11 @@ class SolveConfig:
     transpose: bool
     keep: bool
     stats: Stats
+    #: dense factors of an earlier solve with the same reflectance columns (:func:`apply_solve_keeping`), reused
+    given: list[Tensor] | None = None
 
     def adjoint(self) -> SolveConfig:
-        return replace(self, transpose=not self.transpose, keep=False, stats=Stats())
+        return replace(self, transpose=not self.transpose, keep=False, stats=Stats(), given=None)
 
 
 class InterreflectSolve(torch.autograd.Function):
@@ -58,6 +61,7 @@ class InterreflectSolve(torch.autograd.Function):
             method=cfg.method,
             tol=cfg.tol,
             max_iter=cfg.max_iter,
+            factors=cfg.given,
             keep_factors=cfg.keep,
             stats=cfg.stats,
         )
@@ -131,6 +135,13 @@ def check_upstream_gradient(g: Tensor) -> None:
 
 def apply_solve(matrix: Tensor, r: Tensor, b: Tensor, cfg: SolveConfig) -> Tensor:
     return InterreflectSolve.apply(matrix, r, b, cfg)[0]
+
+
+def apply_solve_keeping(matrix: Tensor, r: Tensor, b: Tensor, cfg: SolveConfig) -> tuple[Tensor, list[Tensor]]:
+    """:func:`apply_solve` and the dense factors it kept (``cfg.keep``; empty otherwise): passed as ``given`` to a
+    later solve with the same matrix and reflectance columns, they save its factorisation."""
+    x, *factors = InterreflectSolve.apply(matrix, r, b, cfg)
+    return x, list(factors)
 
 
 def transposed_matmul(matrix: Tensor, y: Tensor) -> Tensor:

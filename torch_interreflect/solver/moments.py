@@ -14,6 +14,8 @@ constant change sign), so the checks of :func:`~torch_interreflect.solve` that r
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
+from dataclasses import dataclass, replace
 
 import torch
 from torch import Tensor
@@ -22,12 +24,12 @@ from .._checks import as_real_tensor, broadcast_shapes, check_finite, check_refl
 from ..errors import ShapeError
 from ..formfactors.moments import MomentFormFactors
 from .columns import from_columns, to_columns
-from .functions import SolveConfig, apply_solve
+from .functions import SolveConfig, apply_solve, apply_solve_keeping
 from .info import warn_if_not_converged
 from .method import DEFAULT_MAX_ITER, choose_method
 from .plan import Component, SolvePlan, Stats
 
-__all__ = ["DENSE_MAX_UNKNOWNS", "facet_averages", "solve_moments"]
+__all__ = ["DENSE_MAX_UNKNOWNS", "facet_averages", "solve_moments", "solve_moments_twice"]
 
 #: ``method="auto"`` uses CG above this many unknowns (facets × basis functions); below, the solver's cost model
 #: (:func:`~torch_interreflect.solver.method.choose_method`) picks dense or CG.
@@ -53,6 +55,78 @@ def _plan(K: MomentFormFactors, matrix: Tensor) -> SolvePlan:
                      reciprocity_error=0.0, worst_pair=(0, 0), kernel_tol=tol, closure_error=comp.closure_error)
     K.info["_moment_plan"] = plan
     return plan
+
+
+@dataclass
+class _System:
+    """A checked system in columns: the detached matrix, the reflectance and right-hand-side columns, the solve's
+    configuration, and the output's ``[..., F·nb, L]`` shape."""
+
+    matrix: Tensor
+    r_cols: Tensor
+    b_cols: Tensor
+    cfg: SolveConfig
+    shape: torch.Size
+    nb: int
+
+    def coefficients(self, x: Tensor) -> Tensor:
+        """``c [..., F, nb, L]`` from solution columns."""
+        return from_columns(x, self.shape).unflatten(-2, (self.shape[-2] // self.nb, self.nb))
+
+
+def _check_options(tol: float, method: str, max_iter: int | None) -> None:
+    if method not in ("auto", "dense", "cg"):
+        raise ValueError(f"method must be 'auto', 'dense' or 'cg'; got {method!r}")
+    if not (isinstance(tol, (int, float)) and math.isfinite(tol) and tol > 0):
+        raise ValueError(f"tol must be a positive finite number; got {tol!r}")
+    if max_iter is not None and (isinstance(max_iter, bool) or not isinstance(max_iter, int) or max_iter < 1):
+        raise ValueError(f"max_iter must be None or an integer >= 1; got {max_iter!r}")
+
+
+def _system(form_factors: MomentFormFactors, reflectance: Tensor, E0: Tensor, tol: float, method: str,
+            max_iter: int | None, keep: bool = False) -> _System:
+    """Check the inputs of :func:`solve_moments` and put them in columns (``keep``: keep the dense factors)."""
+    if not isinstance(form_factors, MomentFormFactors):
+        raise TypeError(f"form_factors must be MomentFormFactors; got {type(form_factors).__name__} (for form "
+                        "factors of degree 0 use torch_interreflect.solve)")
+    _check_options(tol, method, max_iter)
+    F, nb = form_factors.num_facets, form_factors.size
+    r = as_real_tensor(reflectance, "reflectance")
+    e0 = as_real_tensor(E0, "E0")
+    matrix = form_factors.matrix
+    check_same_device(matrix.device, "the moments", reflectance=r, E0=e0)
+    if e0.ndim < 3 or tuple(e0.shape[-3:-1]) != (F, nb):
+        raise ShapeError(f"E0 must have shape [..., F, nb, L] = [..., {F}, {nb}, L] (moments per facet and basis "
+                         f"function); got {list(e0.shape)}")
+    grey = r.ndim >= 1 and r.shape[-1] == F and (r.ndim < 2 or r.shape[-2] != F)
+    r = r.unsqueeze(-1) if grey else r
+    if r.ndim < 2 or r.shape[-2] != F:
+        raise ShapeError(f"reflectance must have shape [..., F] or [..., F, L] with F = {F}; got "
+                         f"{list(reflectance.shape)}")
+    dtype = torch.promote_types(torch.promote_types(matrix.dtype, r.dtype), e0.dtype)
+    if not dtype.is_floating_point:
+        dtype = torch.get_default_dtype()
+    r, e0 = r.to(dtype), e0.to(dtype)
+    check_reflectance(r)
+    check_finite(e0.flatten(-2), "E0", -2)
+    lead = broadcast_shapes(r.shape[:-2], e0.shape[:-3])
+    L = max(int(r.shape[-1]), int(e0.shape[-1]))
+    shape = torch.Size([*lead, F * nb, L])
+    r_rep = r.repeat_interleave(nb, dim=-2)  # [..., F·nb, L]
+    try:
+        r_cols, b_cols = to_columns(r_rep, shape), to_columns(e0.flatten(-3, -2), shape)
+    except RuntimeError as exc:
+        raise ShapeError(f"reflectance {list(r.shape)} and E0 {list(e0.shape)} do not broadcast") from exc
+    mat = matrix.to(dtype)
+    plan = _plan(form_factors, mat)
+    if method == "auto":  # the solver's cost model (many distinct reflectance columns favour CG), CG when large
+        method = choose_method(plan, r_cols, float(tol)) if F * nb <= DENSE_MAX_UNKNOWNS else "cg"
+    need_grad = torch.is_grad_enabled() and (r.requires_grad or e0.requires_grad)
+    iters = int(max_iter if max_iter is not None else DEFAULT_MAX_ITER.get(method, 1))
+    cfg = SolveConfig(plan=plan, areas=form_factors.areas.detach().to(dtype).repeat_interleave(nb), method=method,
+                      tol=float(tol), max_iter=iters, transpose=False,
+                      keep=bool((need_grad or keep) and method == "dense"), stats=Stats())
+    return _System(mat.detach(), r_cols, b_cols, cfg, shape, nb)
 
 
 def solve_moments(
@@ -98,55 +172,69 @@ def solve_moments(
         >>> round(float(c[0, 0, 0]), 4), float(c[..., 1:, :].abs().max()) < 1e-4   # E0 / (1 − r) = 2
         (2.0, True)
     """
-    if not isinstance(form_factors, MomentFormFactors):
-        raise TypeError(f"form_factors must be MomentFormFactors; got {type(form_factors).__name__} (for form "
-                        "factors of degree 0 use torch_interreflect.solve)")
-    if method not in ("auto", "dense", "cg"):
-        raise ValueError(f"method must be 'auto', 'dense' or 'cg'; got {method!r}")
-    if not (isinstance(tol, (int, float)) and math.isfinite(tol) and tol > 0):
-        raise ValueError(f"tol must be a positive finite number; got {tol!r}")
-    if max_iter is not None and (isinstance(max_iter, bool) or not isinstance(max_iter, int) or max_iter < 1):
-        raise ValueError(f"max_iter must be None or an integer >= 1; got {max_iter!r}")
-    F, nb = form_factors.num_facets, form_factors.size
-    r = as_real_tensor(reflectance, "reflectance")
-    e0 = as_real_tensor(E0, "E0")
-    matrix = form_factors.matrix
-    check_same_device(matrix.device, "the moments", reflectance=r, E0=e0)
-    if e0.ndim < 3 or tuple(e0.shape[-3:-1]) != (F, nb):
-        raise ShapeError(f"E0 must have shape [..., F, nb, L] = [..., {F}, {nb}, L] (moments per facet and basis "
-                         f"function); got {list(e0.shape)}")
-    grey = r.ndim >= 1 and r.shape[-1] == F and (r.ndim < 2 or r.shape[-2] != F)
-    r = r.unsqueeze(-1) if grey else r
-    if r.ndim < 2 or r.shape[-2] != F:
-        raise ShapeError(f"reflectance must have shape [..., F] or [..., F, L] with F = {F}; got "
-                         f"{list(reflectance.shape)}")
-    dtype = torch.promote_types(torch.promote_types(matrix.dtype, r.dtype), e0.dtype)
-    if not dtype.is_floating_point:
-        dtype = torch.get_default_dtype()
-    r, e0 = r.to(dtype), e0.to(dtype)
-    check_reflectance(r)
-    check_finite(e0.flatten(-2), "E0", -2)
-    lead = broadcast_shapes(r.shape[:-2], e0.shape[:-3])
-    L = max(int(r.shape[-1]), int(e0.shape[-1]))
-    shape = torch.Size([*lead, F * nb, L])
-    r_rep = r.repeat_interleave(nb, dim=-2)  # [..., F·nb, L]
-    e_rep = e0.flatten(-3, -2)
-    try:
-        r_cols, b_cols = to_columns(r_rep, shape), to_columns(e_rep, shape)
-    except RuntimeError as exc:
-        raise ShapeError(f"reflectance {list(r.shape)} and E0 {list(e0.shape)} do not broadcast") from exc
-    mat = matrix.to(dtype)
-    plan = _plan(form_factors, mat)
-    if method == "auto":  # the solver's cost model (many distinct reflectance columns favour CG), CG when large
-        method = choose_method(plan, r_cols, float(tol)) if F * nb <= DENSE_MAX_UNKNOWNS else "cg"
-    need_grad = torch.is_grad_enabled() and (r.requires_grad or e0.requires_grad)
-    iters = int(max_iter if max_iter is not None else DEFAULT_MAX_ITER.get(method, 1))
-    cfg = SolveConfig(plan=plan, areas=form_factors.areas.detach().to(dtype).repeat_interleave(nb), method=method,
-                      tol=float(tol), max_iter=iters, transpose=False, keep=bool(need_grad and method == "dense"),
-                      stats=Stats())
-    x = apply_solve(mat.detach(), r_cols, b_cols, cfg)
-    warn_if_not_converged(cfg.stats, f"solve_moments(method={method!r})")
-    return from_columns(x, shape).unflatten(-2, (F, nb))
+    sys = _system(form_factors, reflectance, E0, tol, method, max_iter)
+    x = apply_solve(sys.matrix, sys.r_cols, sys.b_cols, sys.cfg)
+    warn_if_not_converged(sys.cfg.stats, f"solve_moments(method={sys.cfg.method!r})")
+    return sys.coefficients(x)
+
+
+def solve_moments_twice(
+    form_factors: MomentFormFactors,
+    reflectance: Tensor,
+    E0: Tensor,
+    then: Callable[[Tensor], Tensor],
+    *,
+    tol: float = 1e-6,
+    method: str = "auto",
+    max_iter: int | None = None,
+) -> tuple[Tensor, Tensor]:
+    """Two solves of one system, the second's light made from the first's answer: ``c₁ = (I − G R)⁻¹ e0`` and
+    ``c₂ = (I − G R)⁻¹ then(c₁)``, on one dense factorisation per distinct reflectance column (the second solve
+    reuses the first's; CG solves twice).
+
+    Differentiable as :func:`solve_moments`, through both solves and ``then``.
+
+    Args:
+        form_factors, reflectance, E0, tol, method, max_iter: As for :func:`solve_moments`.
+        then: The second solve's light from ``c₁`` (W·m⁻²·nm⁻¹), shaped as ``c₁`` (a light that broadcasts to
+            another shape is solved afresh).
+
+    Returns:
+        ``(c₁, c₂)``. Shape ``[..., F, nb, L]`` each.
+
+    Raises:
+        As :func:`solve_moments`, for either solve.
+
+    Shape:
+        - ``reflectance``: ``[..., F, L]`` or ``[..., F]``; ``E0`` and ``then(c₁)``: ``[..., F, nb, L]``
+        - outputs: ``[..., F, nb, L]`` each
+
+    Example:
+        >>> import torch, torch_interreflect as ti
+        >>> from torch_interreflect.formfactors import moment_form_factors
+        >>> from torch_interreflect.light_moments import light_moments
+        >>> from torch_interreflect.solver.moments import solve_moments, solve_moments_twice
+        >>> box = ti.scenes.closed_box(divisions=2, dtype=torch.float64)
+        >>> G = moment_form_factors(box, 2)
+        >>> r = torch.full((24,), 0.5, dtype=torch.float64)
+        >>> e0 = light_moments(box, G)[..., None]
+        >>> c1, c2 = solve_moments_twice(G, r, e0, lambda c: e0 + 0.1 * c)
+        >>> bool(torch.allclose(c2, solve_moments(G, r, e0 + 0.1 * c1)))
+        True
+    """
+    first = _system(form_factors, reflectance, E0, tol, method, max_iter, keep=True)
+    x, factors = apply_solve_keeping(first.matrix, first.r_cols, first.b_cols, first.cfg)
+    warn_if_not_converged(first.cfg.stats, f"solve_moments_twice(method={first.cfg.method!r}), first solve")
+    c1 = first.coefficients(x)
+    e1 = as_real_tensor(then(c1), "then(c1)")
+    if tuple(e1.shape) != tuple(c1.shape) or not factors or not factors[0].numel():
+        return c1, solve_moments(form_factors, reflectance, e1, tol=tol, method=method, max_iter=max_iter)
+    check_finite(e1.flatten(-2), "then(c1)", -2)
+    need_grad = torch.is_grad_enabled() and (first.r_cols.requires_grad or e1.requires_grad)
+    cfg = replace(first.cfg, keep=need_grad, stats=Stats(), given=factors)
+    x2 = apply_solve(first.matrix, first.r_cols, to_columns(e1.to(x.dtype).flatten(-3, -2), first.shape), cfg)
+    warn_if_not_converged(cfg.stats, f"solve_moments_twice(method={cfg.method!r}), second solve")
+    return c1, first.coefficients(x2)
 
 
 def facet_averages(coefficients: Tensor) -> Tensor:

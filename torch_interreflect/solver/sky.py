@@ -33,7 +33,7 @@ from ..errors import ShapeError, ValueRangeError
 from ..formfactors.moments import MomentFormFactors
 from ..formfactors.operator import FormFactorOperator
 from .api import solve
-from .moments import solve_moments
+from .moments import solve_moments, solve_moments_twice
 
 __all__ = ["sky_weights", "solve_moments_sky", "solve_sky"]
 
@@ -85,7 +85,7 @@ def solve_moments_sky(
 ) -> Tensor:
     """:func:`~torch_interreflect.solver.solve_moments` under a uniform sky of radiance ``radiance``, its open part
     weighed per facet between its two estimates (module docstring): one solve with ``escape`` for the weights
-    (:func:`sky_weights`), and one with the weighed light.
+    (:func:`sky_weights`), and one with the weighed light, on one factorisation (:func:`~.moments.solve_moments_twice`).
 
     Differentiable in ``reflectance`` and ``radiance`` (through both solves and the weights).
 
@@ -140,10 +140,12 @@ def solve_moments_sky(
     e_esc = g_esc[:, :, None] * lead
     if torch.equal(g_esc, g_rows):  # no facet where the two differ: one solve
         return solve_moments(form_factors, reflectance, e_esc, **kw)
-    c0 = solve_moments(form_factors, reflectance, e_esc, **kw)
-    beta = sky_weights(form_factors, c0, e_esc, L_sky)  # [..., F, 1, L]
-    e0 = e_esc + beta * ((g_rows - g_esc)[:, :, None] * lead)
-    return solve_moments(form_factors, reflectance, e0, **kw)
+    step = (g_rows - g_esc)[:, :, None] * lead
+
+    def weighed(c0: Tensor) -> Tensor:  # the light with the rows' estimate weighed by β [..., F, 1, L]
+        return e_esc + sky_weights(form_factors, c0, e_esc, L_sky) * step
+
+    return solve_moments_twice(form_factors, reflectance, e_esc, weighed, **kw)[1]
 
 
 def solve_sky(
