@@ -74,3 +74,45 @@ def test_auto_picks_a_correct_method_with_two_threads(two_threads: None) -> None
     r = torch.linspace(0.1, 0.8, 8, dtype=F64)[:, None].expand(8, n)
     e0 = torch.ones(n, 31, dtype=F64)
     torch.testing.assert_close(solve(ff, r, e0), solve(ff, r, e0, method="cg", tol=1e-13), rtol=1e-10, atol=0)
+
+
+
+@pytest.mark.parametrize("columns", [4, 400])
+def test_cg_vector_operations_on_one_thread_and_restored(two_threads: None, columns: int,
+                                                        monkeypatch: pytest.MonkeyPatch) -> None:
+    """Small systems (4 columns of 300 rows, under ``SMALL_VECTOR_ELEMENTS``) run CG's vector operations on one
+    thread and its products on the caller's two; larger ones (400 columns) on two throughout. Either way the answer
+    is the dense one within the CG tolerance, and the caller's thread count is back afterwards, also after an
+    error raised inside the iteration."""
+    from torch_interreflect._threads import SMALL_VECTOR_ELEMENTS
+    from torch_interreflect.errors import SingularSystemError
+    from torch_interreflect.solver.krylov import cg
+    from torch_interreflect.solver.plan import Stats
+
+    n = 300
+    assert (n * columns <= SMALL_VECTOR_ELEMENTS) == (columns == 4)
+    ff = random_reciprocal(n, scale=0.95, seed=3)
+    g = torch.Generator().manual_seed(2)
+    r = 0.5 + 0.45 * torch.rand(columns, n, generator=g, dtype=F64)
+    e0 = torch.rand(n, 1, generator=g, dtype=F64)
+    e_cg = solve(ff, r, e0, method="cg", tol=1e-12)
+    assert torch.get_num_threads() == 2
+    torch.testing.assert_close(e_cg, solve(ff, r, e0, method="dense"), rtol=1e-10, atol=0)
+    seen: list[int] = []
+    sym = ff.matrix * ff.areas.sqrt()[:, None] / ff.areas.sqrt()
+
+    def product(v: torch.Tensor) -> torch.Tensor:
+        seen.append(torch.get_num_threads())
+        return 0.5 * (sym + sym.mT) @ v
+
+    vector: list[int] = []
+    real_vecdot = torch.linalg.vecdot
+    monkeypatch.setattr(torch.linalg, "vecdot", lambda *a, **k: vector.append(torch.get_num_threads())
+                        or real_vecdot(*a, **k))
+    s = torch.full((n, columns), 0.8, dtype=F64)
+    cg(product, s, torch.rand(n, columns, generator=g, dtype=F64), 1e-10, 500, Stats())
+    assert seen and set(seen) == {2} and torch.get_num_threads() == 2
+    assert vector and set(vector) == ({1} if columns == 4 else {2})
+    with pytest.raises(SingularSystemError):  # I − S (2 I) S = −0.28 I: indefinite, p·Ap < 0 at the first step
+        cg(lambda v: 2.0 * v, s, torch.ones(n, columns, dtype=F64), 1e-10, 10, Stats())
+    assert torch.get_num_threads() == 2

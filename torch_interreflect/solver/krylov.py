@@ -8,6 +8,7 @@ from collections.abc import Callable
 import torch
 from torch import Tensor
 
+from .._threads import SMALL_VECTOR_ELEMENTS, torch_threads
 from ..errors import SingularSystemError
 from .plan import Stats
 
@@ -84,9 +85,25 @@ def cg(g: Tensor | Callable[[Tensor], Tensor], s: Tensor, rhs: Tensor, tol: floa
     """Conjugate gradients on ``(I − S G S) w = rhs`` for all columns at once, one GEMM/SpMM per iteration.
 
     ``g`` is a matrix or a product callable; ``tol`` the relative residual to reach, one number or one per column.
-    Converged columns are written out and dropped from the working set (so later products are narrower).
+    Converged columns are written out and dropped from the working set (so later products are narrower). On the
+    CPU, small systems (at most :data:`~torch_interreflect._threads.SMALL_VECTOR_ELEMENTS` in ``rhs``) run the
+    vector operations on one thread and the products on the caller's.
     """
     gmul = g if callable(g) else g.__matmul__
+    threads = torch.get_num_threads()
+    if rhs.device.type != "cpu" or threads == 1 or rhs.numel() > SMALL_VECTOR_ELEMENTS:
+        return _cg(gmul, s, rhs, tol, max_iter, stats)
+
+    def product(v: Tensor) -> Tensor:  # the products at the caller's threads, the vector operations on one
+        with torch_threads(threads):
+            return gmul(v)
+
+    with torch_threads(1):
+        return _cg(product, s, rhs, tol, max_iter, stats)
+
+
+def _cg(gmul: Callable[[Tensor], Tensor], s: Tensor, rhs: Tensor, tol: float | Tensor, max_iter: int,
+        stats: Stats) -> Tensor:
     x = torch.zeros_like(rhs)
     bnorm2 = (rhs * rhs).sum(0)
     active = torch.nonzero(bnorm2 > 0).squeeze(1)
