@@ -253,9 +253,33 @@ def test_partly_shared_edges_converge_as_their_conforming_split(wall, basis):
     floor_cut = cut(0.0, 1.0)
     ref = exchange(_floor_and_wall(floor_cut, cut(a, b)), 1e-9, len(floor_cut))
     whole = _floor_and_wall([(0.0, 1.0)], [wall])
-    assert exchange(whole, 1e-3, 1) == pytest.approx(ref, rel=1e-4 if basis == "moments" else 1e-6)
+    assert exchange(whole, 1e-3, 1) == pytest.approx(ref, rel=1e-4 if basis == "moments" else 2e-7)
     assert exchange(whole, 1e-6, 1) == pytest.approx(ref, rel=1e-8)
 
+
+def test_a_short_edge_nearly_on_a_long_one():
+    """The wall over x = 0.25 to 0.75 along a floor turned by 4e-7 rad about z at x = 0.5: the wall's edge ends lie
+    1e-7 m from the floor edge's line, within the contact tolerance (1e-7 of the floor's 1.41 m diameter), but the
+    floor edge's ends lie 2e-7 m from the wall edge's line, so only one side sees a shared segment. The pair is then
+    a corner contact on the wall (graded toward both of its corner's edges, the whole contact edge one of them), and
+    the exchange at tol 1e-3 is the untilted one's: measured 1.8e-7 off (8.4e-8 at tol 1e-6). Taking the one-sided
+    segment as an edge contact on the floor, cut at the wall's ends, was 2.0e-3 off (5.1e-3 at 1e-6)."""
+    eps = 4e-7
+    c, s = math.cos(eps), math.sin(eps)
+
+    def scene(turn: bool) -> ti.Scene:
+        quads = torch.tensor([[[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]],
+                              [[0.25, 0, 0], [0.25, 0, 0.6], [0.75, 0, 0.6], [0.75, 0, 0]]], dtype=F64)
+        if turn:
+            x, y = quads[0, :, 0] - 0.5, quads[0, :, 1]
+            quads[0, :, 0], quads[0, :, 1] = 0.5 + c * x - s * y, s * x + c * y
+        return ti.Scene.from_polygons(quads)
+
+    def exchange(sc: ti.Scene, tol: float) -> float:
+        F = moment_form_factors(sc, 1, quadrature_tol=tol, occlusion=False).constant().matrix
+        return float(sc.areas[0] * F[0, 1])
+
+    assert exchange(scene(True), 1e-3) == pytest.approx(exchange(scene(False), 1e-9), rel=1e-6)
 
 @pytest.mark.parametrize("degree", [0, 1])
 def test_far_pairs_keep_three_points_per_side_at_every_degree(degree):
