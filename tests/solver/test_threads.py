@@ -116,3 +116,24 @@ def test_cg_vector_operations_on_one_thread_and_restored(two_threads: None, colu
     with pytest.raises(SingularSystemError):  # I − S (2 I) S = −0.28 I: indefinite, p·Ap < 0 at the first step
         cg(lambda v: 2.0 * v, s, torch.ones(n, columns, dtype=F64), 1e-10, 10, Stats())
     assert torch.get_num_threads() == 2
+
+
+@pytest.mark.parametrize(("n", "columns"), [(100, 1), (300, 4)])
+def test_small_dense_solves_on_one_thread(two_threads: None, n: int, columns: int,
+                                          monkeypatch: pytest.MonkeyPatch) -> None:
+    """``c² N`` at most ``SMALL_DENSE_ELEMENTS`` (100² × 1) factors on one thread, larger systems (300² × 4) on the
+    caller's two; the same answers as CG, the caller's count back afterwards."""
+    from torch_interreflect.solver.dense import SMALL_DENSE_ELEMENTS
+
+    assert (n * n * columns <= SMALL_DENSE_ELEMENTS) == (n == 100)
+    seen: list[int] = []
+    real = torch.linalg.cholesky_ex
+    monkeypatch.setattr(torch.linalg, "cholesky_ex", lambda *a, **k: seen.append(torch.get_num_threads())
+                        or real(*a, **k))
+    ff = random_reciprocal(n, scale=0.95, seed=4)
+    g = torch.Generator().manual_seed(5)
+    r = 0.5 + 0.45 * torch.rand(columns, n, generator=g, dtype=F64)
+    e0 = torch.rand(n, 1, generator=g, dtype=F64)
+    e_dense = solve(ff, r, e0, method="dense")
+    assert seen and set(seen) == ({1} if n == 100 else {2}) and torch.get_num_threads() == 2
+    torch.testing.assert_close(e_dense, solve(ff, r, e0, method="cg", tol=1e-13), rtol=1e-10, atol=0)
