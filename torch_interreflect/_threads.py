@@ -52,8 +52,7 @@ def torch_threads(n: int) -> Iterator[None]:
     try:
         yield
     finally:
-        if torch.get_num_threads() != prev:
-            torch.set_num_threads(prev)
+        torch.set_num_threads(prev)
 
 
 @contextmanager
@@ -71,14 +70,14 @@ def compiled_work() -> Iterator[int]:
         (1, True)
     """
     outer = getattr(_state, "threads", None)
-    torch_threads = torch.get_num_threads()
-    n = torch_threads if outer is None else int(outer)
+    prev = torch.get_num_threads()
+    n = prev if outer is None else int(outer)
     _state.threads = n
-    if torch_threads != 1:
+    if prev != 1:
         torch.set_num_threads(1)
     try:
         yield n
     finally:
         _state.threads = outer
-        if torch.get_num_threads() != torch_threads:
-            torch.set_num_threads(torch_threads)
+        if torch.get_num_threads() != prev:
+            torch.set_num_threads(prev)

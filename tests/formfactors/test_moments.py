@@ -281,6 +281,7 @@ def test_a_short_edge_nearly_on_a_long_one():
 
     assert exchange(scene(True), 1e-3) == pytest.approx(exchange(scene(False), 1e-9), rel=1e-6)
 
+
 @pytest.mark.parametrize("degree", [0, 1])
 def test_far_pairs_keep_three_points_per_side_at_every_degree(degree):
     """The Cornell box split at its contacts and cut to 0.4 m (65 pieces, no occlusion), every piece emitting,

@@ -29,11 +29,12 @@ def _then(e0):
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 @pytest.mark.parametrize("method", ["dense", "cg"])
 def test_same_answers_as_two_solves(groove, dtype, method):
-    """Batch of 3 reflectance variants × 2 wavelengths: both answers are two separate solves' bits (the same
-    factors, the same operations)."""
+    """Batch of 3 reflectance variants × 2 wavelengths, four facets black in the first (dropped from its system):
+    both answers are two separate solves' bits (the same factors, the same operations)."""
     scene, _, e0 = groove
     Kd = moment_form_factors(scene.to(dtype), 2, quadrature_tol=1e-6)
     refl = (torch.rand(3, scene.num_facets, 2, generator=torch.Generator().manual_seed(0), dtype=D) * 0.8 + 0.1)
+    refl[0, :4] = 0.0
     refl, e = refl.to(dtype), e0.to(dtype).expand(-1, -1, 2)
     then = _then(e)
     c1, c2 = solve_moments_twice(Kd, refl, e, then, method=method)
@@ -77,4 +78,24 @@ def test_a_light_of_another_shape_is_solved_afresh(groove):
     scales = torch.tensor([1.0, 2.0], dtype=D)[:, None, None, None]
     c1, c2 = solve_moments_twice(K, refl, e0, lambda c: c * scales, method="dense")
     assert c2.shape == (2, *c1.shape)
-    assert torch.allclose(c2, solve_moments(K, refl, c1 * scales, method="dense"), rtol=1e-12, atol=0)
+    assert torch.equal(c2, solve_moments(K, refl, c1 * scales, method="dense"))
+
+
+def test_a_wider_light_and_a_light_with_a_graph(groove):
+    """A float32 system whose second light is float64 is solved afresh in float64 (as two ``solve_moments`` would);
+    a second light that carries a graph while the inputs do not gets its gradient through the second solve (the
+    same as two separate solves)."""
+    scene, K, e0 = groove
+    K32 = moment_form_factors(scene.to(torch.float32), 2, quadrature_tol=1e-6)
+    r32, e32 = torch.full((scene.num_facets,), 0.6), e0.to(torch.float32)
+    c1, c2 = solve_moments_twice(K32, r32, e32, lambda c: c.to(D) * 0.5, method="dense")
+    assert c1.dtype == torch.float32 and c2.dtype == D
+    assert torch.equal(c2, solve_moments(K32, r32, c1.to(D) * 0.5, method="dense"))
+    refl = torch.full((scene.num_facets,), 0.6, dtype=D)
+    w = torch.tensor(0.3, dtype=D, requires_grad=True)
+    _, c2 = solve_moments_twice(K, refl, e0, lambda c: e0 + w * c, method="dense")
+    (g,) = torch.autograd.grad(c2[..., 0, :].sum(), w)
+    w2 = w.detach().clone().requires_grad_()
+    a2 = solve_moments(K, refl, e0 + w2 * solve_moments(K, refl, e0, method="dense"), method="dense")
+    (g2,) = torch.autograd.grad(a2[..., 0, :].sum(), w2)
+    assert float(g) != 0.0 and torch.allclose(g, g2, rtol=1e-12, atol=0)

@@ -76,7 +76,6 @@ def test_auto_picks_a_correct_method_with_two_threads(two_threads: None) -> None
     torch.testing.assert_close(solve(ff, r, e0), solve(ff, r, e0, method="cg", tol=1e-13), rtol=1e-10, atol=0)
 
 
-
 @pytest.mark.parametrize("columns", [4, 400])
 def test_cg_vector_operations_on_one_thread_and_restored(two_threads: None, columns: int,
                                                         monkeypatch: pytest.MonkeyPatch) -> None:

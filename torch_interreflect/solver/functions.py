@@ -71,7 +71,7 @@ class InterreflectSolve(torch.autograd.Function):
     def setup_context(ctx: Any, inputs: tuple[Any, ...], output: tuple[Tensor, ...]) -> None:
         matrix, r, _, cfg = inputs
         x, *factors = output
-        ctx.cfg = cfg
+        ctx.cfg = replace(cfg, given=None)  # the factors it used are saved below; the config need not hold them
         if factors:
             ctx.mark_non_differentiable(*factors)
         ctx.save_for_backward(matrix, r, x, *factors)
@@ -139,7 +139,12 @@ def apply_solve(matrix: Tensor, r: Tensor, b: Tensor, cfg: SolveConfig) -> Tenso
 
 def apply_solve_keeping(matrix: Tensor, r: Tensor, b: Tensor, cfg: SolveConfig) -> tuple[Tensor, list[Tensor]]:
     """:func:`apply_solve` and the dense factors it kept (``cfg.keep``; empty otherwise): passed as ``given`` to a
-    later solve with the same matrix and reflectance columns, they save its factorisation."""
+    later solve with the same matrix and reflectance columns, they save its factorisation.
+
+    Shape:
+        - ``r``, ``b``, output ``x``: ``[F, N]`` columns; factors: three tensors per component (Cholesky or LU
+          factors ``[k, c, c]``, pivots, distinct-column index ``[N]``)
+    """
     x, *factors = InterreflectSolve.apply(matrix, r, b, cfg)
     return x, list(factors)
 

@@ -196,8 +196,8 @@ def solve_moments_twice(
 
     Args:
         form_factors, reflectance, E0, tol, method, max_iter: As for :func:`solve_moments`.
-        then: The second solve's light from ``c₁`` (W·m⁻²·nm⁻¹), shaped as ``c₁`` (a light that broadcasts to
-            another shape is solved afresh).
+        then: The second solve's light from ``c₁`` (W·m⁻²·nm⁻¹), shaped as ``c₁`` (a light of another shape, or of
+            a wider dtype, is solved afresh, as :func:`solve_moments` would).
 
     Returns:
         ``(c₁, c₂)``. Shape ``[..., F, nb, L]`` each.
@@ -227,12 +227,15 @@ def solve_moments_twice(
     warn_if_not_converged(first.cfg.stats, f"solve_moments_twice(method={first.cfg.method!r}), first solve")
     c1 = first.coefficients(x)
     e1 = as_real_tensor(then(c1), "then(c1)")
-    if tuple(e1.shape) != tuple(c1.shape) or not factors or not factors[0].numel():
+    check_same_device(first.matrix.device, "the moments", **{"then(c1)": e1})
+    if (tuple(e1.shape) != tuple(c1.shape) or torch.promote_types(x.dtype, e1.dtype) != x.dtype or not factors
+            or not factors[0].numel()):  # another shape or a wider dtype: what two solve_moments would give
         return c1, solve_moments(form_factors, reflectance, e1, tol=tol, method=method, max_iter=max_iter)
+    e1 = e1.to(x.dtype)
     check_finite(e1.flatten(-2), "then(c1)", -2)
     need_grad = torch.is_grad_enabled() and (first.r_cols.requires_grad or e1.requires_grad)
     cfg = replace(first.cfg, keep=need_grad, stats=Stats(), given=factors)
-    x2 = apply_solve(first.matrix, first.r_cols, to_columns(e1.to(x.dtype).flatten(-3, -2), first.shape), cfg)
+    x2 = apply_solve(first.matrix, first.r_cols, to_columns(e1.flatten(-3, -2), first.shape), cfg)
     warn_if_not_converged(cfg.stats, f"solve_moments_twice(method={cfg.method!r}), second solve")
     return c1, first.coefficients(x2)
 
