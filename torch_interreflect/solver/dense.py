@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Iterator
-from contextlib import contextmanager
+from contextlib import contextmanager, nullcontext
 from dataclasses import dataclass
 
 import torch
@@ -229,46 +229,28 @@ def dense_solve(
     Returns:
         ``x`` ``[c, N]`` and the kept factors (empty list when not kept).
     """
-    c = int(f.shape[0])
-    if f.device.type != "cpu" or torch.get_num_threads() == 1 or c * c * max(int(r.shape[1]), 1) > SMALL_DENSE_ELEMENTS:
-        return _dense_solve(f, areas, r, b, transpose, given, keep, stats, reciprocal=reciprocal, exact=exact)
-    with torch_threads(1):
-        return _dense_solve(f, areas, r, b, transpose, given, keep, stats, reciprocal=reciprocal, exact=exact)
-
-
-def _dense_solve(
-    f: Tensor,
-    areas: Tensor,
-    r: Tensor,
-    b: Tensor,
-    transpose: bool,
-    given: list[Tensor] | None,
-    keep: bool,
-    stats: Stats,
-    *,
-    reciprocal: bool,
-    exact: bool,
-) -> tuple[Tensor, list[Tensor]]:
-    if f.layout != torch.strided:
-        f = f.to_dense()
-    if given is not None and given[0].numel():
-        factor, piv, inv = given
-        uniq, k = None, int(factor.shape[0])
-    else:
-        factor = piv = None
-        uniq, inv = torch.unique(r, dim=1, return_inverse=True)
-        k = int(uniq.shape[1])
-    stats.distinct_columns += k
-    pk = _Packing.of(inv, k)
-    keep = keep and k <= _factor_chunks(int(f.shape[0]), k, f.element_size())
-    x = None
-    if reciprocal and (piv is None or piv.numel() == 0):
-        x, factor = _spd_solve(f, areas, r, b, transpose, factor, uniq, pk, exact)
-        piv = b.new_empty(0, dtype=torch.int32)
-    if x is None:  # not reciprocal, not positive definite (rows summing to more than 1), or refinement failed
-        if piv is None or piv.numel() == 0 or factor is None:
-            factor, piv = _lu(f, torch.unique(r, dim=1) if uniq is None else uniq)
-        x = _lu_apply(factor, piv, pk, b, transpose)
-    if not bool(torch.isfinite(x).all()):
-        raise _singular("non-finite result of the dense solve")
-    return x, ([factor, piv, inv] if keep and factor is not None else [])
+    small = f.device.type == "cpu" and f.shape[0] ** 2 * max(int(r.shape[1]), 1) <= SMALL_DENSE_ELEMENTS
+    with torch_threads(1) if small else nullcontext():
+        if f.layout != torch.strided:
+            f = f.to_dense()
+        if given is not None and given[0].numel():
+            factor, piv, inv = given
+            uniq, k = None, int(factor.shape[0])
+        else:
+            factor = piv = None
+            uniq, inv = torch.unique(r, dim=1, return_inverse=True)
+            k = int(uniq.shape[1])
+        stats.distinct_columns += k
+        pk = _Packing.of(inv, k)
+        keep = keep and k <= _factor_chunks(int(f.shape[0]), k, f.element_size())
+        x = None
+        if reciprocal and (piv is None or piv.numel() == 0):
+            x, factor = _spd_solve(f, areas, r, b, transpose, factor, uniq, pk, exact)
+            piv = b.new_empty(0, dtype=torch.int32)
+        if x is None:  # not reciprocal, not positive definite (rows summing to more than 1), or refinement failed
+            if piv is None or piv.numel() == 0 or factor is None:
+                factor, piv = _lu(f, torch.unique(r, dim=1) if uniq is None else uniq)
+            x = _lu_apply(factor, piv, pk, b, transpose)
+        if not bool(torch.isfinite(x).all()):
+            raise _singular("non-finite result of the dense solve")
+        return x, ([factor, piv, inv] if keep and factor is not None else [])
