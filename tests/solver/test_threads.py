@@ -94,8 +94,14 @@ def test_cg_vector_operations_on_one_thread_and_restored(two_threads: None, colu
     g = torch.Generator().manual_seed(2)
     r = 0.5 + 0.45 * torch.rand(columns, n, generator=g, dtype=F64)
     e0 = torch.rand(n, 1, generator=g, dtype=F64)
-    e_cg = solve(ff, r, e0, method="cg", tol=1e-12)
+    vector: list[int] = []
+    real_vecdot = torch.linalg.vecdot
+    monkeypatch.setattr(torch.linalg, "vecdot", lambda *a, **k: vector.append(torch.get_num_threads())
+                        or real_vecdot(*a, **k))
+    e_cg = solve(ff, r, e0, method="cg", tol=1e-12)  # through operator_cg: the scaling on one thread as well
     assert torch.get_num_threads() == 2
+    assert vector and set(vector) == ({1} if columns == 4 else {2})
+    vector.clear()
     torch.testing.assert_close(e_cg, solve(ff, r, e0, method="dense"), rtol=1e-10, atol=0)
     seen: list[int] = []
     sym = ff.matrix * ff.areas.sqrt()[:, None] / ff.areas.sqrt()
@@ -104,10 +110,6 @@ def test_cg_vector_operations_on_one_thread_and_restored(two_threads: None, colu
         seen.append(torch.get_num_threads())
         return 0.5 * (sym + sym.mT) @ v
 
-    vector: list[int] = []
-    real_vecdot = torch.linalg.vecdot
-    monkeypatch.setattr(torch.linalg, "vecdot", lambda *a, **k: vector.append(torch.get_num_threads())
-                        or real_vecdot(*a, **k))
     s = torch.full((n, columns), 0.8, dtype=F64)
     cg(product, s, torch.rand(n, columns, generator=g, dtype=F64), 1e-10, 500, Stats())
     assert seen and set(seen) == {2} and torch.get_num_threads() == 2

@@ -48,8 +48,13 @@ def operator_cg(
     """:func:`cg_block` for an ``F`` given only as a product ``apply_f(x) = F @ x`` (``[F, N] -> [F, N]``).
 
     ``F`` must be exactly reciprocal (``A F`` symmetric); ``G = A^{1/2} F A^{-1/2}`` is applied as
-    ``sa * apply_f(v / sa)``.
+    ``sa * apply_f(v / sa)``. On the CPU, small systems (:data:`~torch_interreflect._threads.SMALL_VECTOR_ELEMENTS`)
+    run everything but ``apply_f`` on one thread (the scaling around the product included).
     """
+    threads = _small_cpu(b)
+    if threads:
+        with torch_threads(1):
+            return operator_cg(_at_threads(apply_f, threads), areas, r, b, transpose, tol, max_iter, stats)
     sa = areas.sqrt()[:, None]
 
     def g(v: Tensor) -> Tensor:
@@ -90,16 +95,28 @@ def cg(g: Tensor | Callable[[Tensor], Tensor], s: Tensor, rhs: Tensor, tol: floa
     vector operations on one thread and the products on the caller's.
     """
     gmul = g if callable(g) else g.__matmul__
-    threads = torch.get_num_threads()
-    if rhs.device.type != "cpu" or threads == 1 or rhs.numel() > SMALL_VECTOR_ELEMENTS:
+    threads = _small_cpu(rhs)
+    if not threads:
         return _cg(gmul, s, rhs, tol, max_iter, stats)
-
-    def product(v: Tensor) -> Tensor:  # the products at the caller's threads, the vector operations on one
-        with torch_threads(threads):
-            return gmul(v)
-
     with torch_threads(1):
-        return _cg(product, s, rhs, tol, max_iter, stats)
+        return _cg(_at_threads(gmul, threads), s, rhs, tol, max_iter, stats)
+
+
+def _small_cpu(t: Tensor) -> int:
+    """The caller's torch thread count when ``t`` is a small system on the CPU (its vector work then runs on one
+    thread, its products on that many), else 0."""
+    threads = torch.get_num_threads()
+    return threads if t.device.type == "cpu" and threads > 1 and t.numel() <= SMALL_VECTOR_ELEMENTS else 0
+
+
+def _at_threads(fn: Callable[[Tensor], Tensor], threads: int) -> Callable[[Tensor], Tensor]:
+    """``fn`` run with ``threads`` torch threads (the products, inside a one-thread iteration)."""
+
+    def call(v: Tensor) -> Tensor:
+        with torch_threads(threads):
+            return fn(v)
+
+    return call
 
 
 def _cg(gmul: Callable[[Tensor], Tensor], s: Tensor, rhs: Tensor, tol: float | Tensor, max_iter: int,
