@@ -15,7 +15,7 @@ from contextlib import contextmanager
 
 import torch
 
-__all__ = ["SMALL_VECTOR_ELEMENTS", "compiled_work", "torch_threads", "work_threads"]
+__all__ = ["SMALL_VECTOR_ELEMENTS", "compiled_work", "small_work_threads", "torch_threads", "work_threads"]
 
 #: Iterations whose vectors hold at most this many elements run their vector operations on one thread (the products
 #: keep the caller's threads): waking torch's OpenMP workers for each of them cost more than the work. One CG
@@ -55,6 +55,20 @@ def torch_threads(n: int) -> Iterator[None]:
         torch.set_num_threads(prev)
 
 
+def small_work_threads(device: torch.device, elements: int, limit: int) -> int:
+    """The caller's torch thread count when work of ``elements`` elements on ``device`` is small enough (at most
+    ``limit``, on the CPU, with more than one thread) for its element-wise operations to run on one thread; else 0.
+
+    Example:
+        >>> import torch
+        >>> from torch_interreflect._threads import small_work_threads
+        >>> small_work_threads(torch.device("cpu"), 10**9, 65536)
+        0
+    """
+    threads = torch.get_num_threads()
+    return threads if device.type == "cpu" and threads > 1 and elements <= limit else 0
+
+
 @contextmanager
 def compiled_work() -> Iterator[int]:
     """Run the block's torch operations on one thread; compiled loops and ray casts in it use :func:`work_threads`.
@@ -70,14 +84,10 @@ def compiled_work() -> Iterator[int]:
         (1, True)
     """
     outer = getattr(_state, "threads", None)
-    prev = torch.get_num_threads()
-    n = prev if outer is None else int(outer)
+    n = torch.get_num_threads() if outer is None else int(outer)
     _state.threads = n
-    if prev != 1:
-        torch.set_num_threads(1)
     try:
-        yield n
+        with torch_threads(1):
+            yield n
     finally:
         _state.threads = outer
-        if torch.get_num_threads() != prev:
-            torch.set_num_threads(prev)

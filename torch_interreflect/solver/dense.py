@@ -22,7 +22,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from .._threads import torch_threads
+from .._threads import small_work_threads, torch_threads
 from ..errors import SingularSystemError
 from .plan import Stats
 
@@ -47,15 +47,8 @@ MAX_REFINE = 30
 @contextmanager
 def single_thread(t: Tensor) -> Iterator[None]:
     """Run the body with one intra-op thread when ``t`` is a batched CPU tensor (restored afterwards)."""
-    prev = torch.get_num_threads()
-    if t.device.type != "cpu" or t.ndim < 3 or t.shape[0] < 2 or prev == 1:
+    with torch_threads(1) if t.device.type == "cpu" and t.ndim >= 3 and t.shape[0] >= 2 else nullcontext():
         yield
-        return
-    torch.set_num_threads(1)
-    try:
-        yield
-    finally:
-        torch.set_num_threads(prev)
 
 
 def _singular(what: str) -> SingularSystemError:
@@ -229,7 +222,7 @@ def dense_solve(
     Returns:
         ``x`` ``[c, N]`` and the kept factors (empty list when not kept).
     """
-    small = f.device.type == "cpu" and f.shape[0] ** 2 * max(int(r.shape[1]), 1) <= SMALL_DENSE_ELEMENTS
+    small = small_work_threads(f.device, f.shape[0] ** 2 * max(int(r.shape[1]), 1), SMALL_DENSE_ELEMENTS)
     with torch_threads(1) if small else nullcontext():
         if f.layout != torch.strided:
             f = f.to_dense()

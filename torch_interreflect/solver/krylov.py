@@ -8,7 +8,7 @@ from collections.abc import Callable
 import torch
 from torch import Tensor
 
-from .._threads import SMALL_VECTOR_ELEMENTS, torch_threads
+from .._threads import SMALL_VECTOR_ELEMENTS, small_work_threads, torch_threads
 from ..errors import SingularSystemError
 from .plan import Stats
 
@@ -51,7 +51,7 @@ def operator_cg(
     ``sa * apply_f(v / sa)``. On the CPU, small systems (:data:`~torch_interreflect._threads.SMALL_VECTOR_ELEMENTS`)
     run everything but ``apply_f`` on one thread (the scaling around the product included).
     """
-    threads = _small_cpu(b)
+    threads = small_work_threads(b.device, b.numel(), SMALL_VECTOR_ELEMENTS)
     if threads:
         with torch_threads(1):
             return operator_cg(_at_threads(apply_f, threads), areas, r, b, transpose, tol, max_iter, stats)
@@ -95,18 +95,11 @@ def cg(g: Tensor | Callable[[Tensor], Tensor], s: Tensor, rhs: Tensor, tol: floa
     vector operations on one thread and the products on the caller's.
     """
     gmul = g if callable(g) else g.__matmul__
-    threads = _small_cpu(rhs)
+    threads = small_work_threads(rhs.device, rhs.numel(), SMALL_VECTOR_ELEMENTS)
     if not threads:
         return _cg(gmul, s, rhs, tol, max_iter, stats)
     with torch_threads(1):
         return _cg(_at_threads(gmul, threads), s, rhs, tol, max_iter, stats)
-
-
-def _small_cpu(t: Tensor) -> int:
-    """The caller's torch thread count when ``t`` is a small system on the CPU (its vector work then runs on one
-    thread, its products on that many), else 0."""
-    threads = torch.get_num_threads()
-    return threads if t.device.type == "cpu" and threads > 1 and t.numel() <= SMALL_VECTOR_ELEMENTS else 0
 
 
 def _at_threads(fn: Callable[[Tensor], Tensor], threads: int) -> Callable[[Tensor], Tensor]:
