@@ -70,6 +70,7 @@ from tqdm.auto import tqdm
 from .._deprecation import moved_attribute
 from ..formfactors.moments import MomentFormFactors, mean_moments, moment_form_factors, resample_visibility
 from ..geometry.contacts import split_at_contacts
+from ..geometry.scene import Scene
 from ..light_moments import SkyRays, light_moments, sky_estimates, sky_rays
 from ..lights import sun_direction
 from ..solver.moments import solve_moments
@@ -306,7 +307,8 @@ def _sky_start(pb: Problem) -> int:
 
 
 def refine_moments(pb: Problem, *, max_unknowns: int, max_iterations: int, show: bool,
-                   t_start: float, halving: bool = False) -> MomentRefinement:
+                   t_start: float, halving: bool = False,
+                   pieces: tuple[Scene, Tensor] | None = None) -> MomentRefinement:
     """Refine until the estimated discretisation error is within its share of the request (module docstring).
 
     Args:
@@ -318,8 +320,10 @@ def refine_moments(pb: Problem, *, max_unknowns: int, max_iterations: int, show:
         halving: Estimate from the change of each user facet's output when its leaves are split
             (:data:`Q_HALVING`), not from the degrees' difference: where the light is rough
             (:func:`~.moments_settings.smooth_light`). Every user facet is split at least once.
+        pieces: ``split_at_contacts(pb.scene)`` already computed (the first leaves and their user facets); computed
+            here when None.
     """
-    pieces, piece_user = split_at_contacts(pb.scene)
+    pieces, piece_user = split_at_contacts(pb.scene) if pieces is None else pieces
     leaves = Leaves(pieces, piece_user.to(pb.scene.device))
     share = pb.accuracy * (pb.budget["discretisation"] + pb.budget.get("sparsification", 0.0))
     if halving:

@@ -96,21 +96,22 @@ def constant_probe_pays(reflectance: Tensor, accuracy: float) -> bool:
     return not (bright and accuracy <= PROBE_ACCURACY)
 
 
-def smooth_light(scene: Scene, light: Any) -> bool:
+def smooth_light(scene: Scene, light: Any, pieces: Scene | None = None) -> bool:
     """No rough light over any piece of the scene split at contacts
     (:func:`~torch_interreflect.light_moments.light_is_rough`: a sun's shadow edge, a sky or area light through
     blockable pairs), and no contact in a scene with blockable pairs: where something stands on something among
     occluders (the Cornell box's blocks), the interreflected light has the penumbrae that make a sky rough, and the
     estimate failed there under uniform light too (accuracy 1e-3: estimated 0.14 % against 0.38 % at 1,208
     leaves). The W fold (occluders, no contact) keeps the polynomial basis: 0.036 % from Mitsuba at 1e-3 with an
-    estimate of 0.094 %."""
-    pieces = split_at_contacts(scene)[0]
+    estimate of 0.094 %. ``pieces``: the scene already split at contacts (split here when None). The blockable
+    pairs are looked for only where there are contacts."""
+    pieces = split_at_contacts(scene)[0] if pieces is None else pieces
     is_sun = sun_direction(light, scene.num_facets) is not None  # on the user's facets, not the pieces' count
     if light_is_rough(pieces, light, direction=is_sun):
         return False
     contacts = pieces.num_facets != scene.num_facets
-    blockable = light_is_rough(pieces, "sky")  # a sky is rough exactly where a third facet can block a pair
-    return not (contacts and blockable)
+    # a sky is rough exactly where a third facet can block a pair
+    return not (contacts and light_is_rough(pieces, "sky"))
 
 
 def solver_tolerance(accuracy: float) -> float:
