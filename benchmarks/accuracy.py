@@ -14,8 +14,8 @@ and max, against
   (the error does not fall as ``1/k`` near concave edges, so first order overshoots; see the report). These
   solutions are cached under ``out/accuracy/`` (never committed).
 
-Each render runs in a forked child with a time limit (a case over the limit is reported as skipped) and with
-``max_facets`` as a cap; the ``AccuracyWarning`` (target not reachable) is recorded, not raised. For the cost
+Each render runs in a forked child on all cores (``--threads``; the parent stays on one thread, see :func:`main`)
+with a time limit (a case over the limit is reported as skipped) and with ``max_facets`` as a cap; the ``AccuracyWarning`` (target not reachable) is recorded, not raised. For the cost
 side the report sets the adaptive time against uniform refinement ``k = 1, 2, ...`` timed in the same run (and
 against the ``ours k=1..4`` and Mitsuba rows of ``results/speed_vs_error.md``, timed on 2 threads).
 
@@ -344,8 +344,10 @@ def render_warned(c: dict) -> bool:
     return c["warning"].startswith("render")
 
 
-def _child(conn: Any, p: dict, accuracy: float, max_facets: int, extrapolate: bool, basis: str) -> None:
+def _child(conn: Any, p: dict, accuracy: float, max_facets: int, extrapolate: bool, basis: str,
+           threads: int) -> None:
     try:
+        torch.set_num_threads(threads)  # the parent stays on one (see main)
         # a forked child's first render pays 15-45 ms of cold start (measured on the dark scenes: 42-104 ms
         # against 24-59 ms in the parent); one render of the same scene at a loose request warms it, as the
         # uniform curve's best of two is warm
@@ -360,11 +362,12 @@ def _child(conn: Any, p: dict, accuracy: float, max_facets: int, extrapolate: bo
 
 
 def run_case_limited(p: dict, accuracy: float, max_facets: int, limit_s: float, extrapolate: bool = True,
-                     basis: str = "auto") -> dict:
-    """:func:`run_case` in a forked child, killed after ``limit_s`` seconds (``{"skipped": ...}``)."""
+                     basis: str = "auto", threads: int = 1) -> dict:
+    """:func:`run_case` in a forked child on ``threads`` torch threads, killed after ``limit_s`` seconds
+    (``{"skipped": ...}``)."""
     ctx = mp.get_context("fork")
     a, b = ctx.Pipe(duplex=False)
-    proc = ctx.Process(target=_child, args=(b, p, accuracy, max_facets, extrapolate, basis))
+    proc = ctx.Process(target=_child, args=(b, p, accuracy, max_facets, extrapolate, basis, threads))
     proc.start()
     b.close()
     res: dict | None = None
@@ -408,37 +411,24 @@ def measure(case: dict, ref: dict, finer: dict) -> dict:
 
 # ---------------------------------------------------------------------------------------------- cost references
 def uniform_curve(
-    name: str, p: dict, finer: dict, max_facets: int, cache: Path = CACHE, siblings: dict | None = None
+    name: str, p: dict, finer: dict, max_facets: int, cache: Path = CACHE, siblings: dict | None = None,
+    threads: int = 1,
 ) -> list[dict]:
     """Uniform ``k = 1, 2, ...`` (``F k² ≤ max_facets``, form-factor tol 1e-4, solver tol 1e-6): time (form
     factors + direct light + solve + averaging, of the scene split at contacts, best of two when under 2 s) and error
     against the finer solution,
-    in this run's thread setting. Solutions and times are cached per scene (the errors are recomputed against
-    the finer solution given); ``siblings`` (name -> (problem, finer)) with the same geometry share the timed
-    kernel and are cached alongside."""
-    tag = f"{max_facets}_t{torch.get_num_threads()}{split_tag(p)}"
+    on ``threads`` torch threads, in a forked child as the renders are (:func:`run_case_limited`). Solutions and
+    times are cached per scene (the errors are recomputed against the finer solution given); ``siblings``
+    (name -> (problem, finer)) with the same geometry share the timed kernel and are cached alongside."""
+    tag = f"{max_facets}_t{threads}{split_tag(p)}"
     path = cache / f"uniform_{name}_{tag}.npz"
     if not path.exists():
         group = {name: p, **{n: v[0] for n, v in (siblings or {}).items() if n != name}}
-        sols: dict[str, list[np.ndarray]] = {n: [] for n in group}
-        times: dict[str, list[float]] = {n: [] for n in group}
-        F = pieces_of(p)  # split at contacts
-        ks = []
-        k = 1
-        while F * k * k <= max_facets:
-            es, kt, st = uniform(list(group.values()), k, ff_tol=1e-4, solve_tol=1e-6)
-            total = [kt + x for x in st]  # per problem: the shared kernel and its own solve
-            if kt + max(st) < BEST_OF_TWO_S:  # the faster of two whole calls (not kernel and solve from different ones)
-                _, kt2, st2 = uniform(list(group.values()), k, ff_tol=1e-4, solve_tol=1e-6)
-                total = [min(t, kt2 + x) for t, x in zip(total, st2, strict=True)]
-            for n, e, t_ in zip(group, es, total, strict=True):
-                sols[n].append(e)
-                times[n].append(t_)
-            ks.append(k)
-            k += 1
-        cache.mkdir(parents=True, exist_ok=True)
-        for n in group:
-            np.savez(cache / f"uniform_{n}_{tag}.npz", k=np.array(ks), E=np.array(sols[n]), seconds=np.array(times[n]))
+        proc = mp.get_context("fork").Process(target=_time_uniform, args=(group, max_facets, cache, tag, threads))
+        proc.start()
+        proc.join()
+        if proc.exitcode != 0 or not path.exists():
+            raise RuntimeError(f"timing the uniform curve of {name} failed (exit {proc.exitcode})")
     z = np.load(path)
     timed = path.stat().st_mtime  # when the curve was timed: this run, or an earlier one whose cache was kept
     F = pieces_of(p)
@@ -448,6 +438,31 @@ def uniform_curve(
         out.append({"k": int(k), "facets": F * int(k) ** 2, "seconds": float(t), "rmse": rmse, "max": mx,
                     "timed": timed})
     return out
+
+
+def _time_uniform(group: dict, max_facets: int, cache: Path, tag: str, threads: int) -> None:
+    """Time uniform ``k = 1, 2, ...`` of the problems ``group`` (same geometry) on ``threads`` torch threads and save
+    each curve to ``cache`` (the body of :func:`uniform_curve`, run in a forked child)."""
+    torch.set_num_threads(threads)
+    sols: dict[str, list[np.ndarray]] = {n: [] for n in group}
+    times: dict[str, list[float]] = {n: [] for n in group}
+    F = pieces_of(next(iter(group.values())))  # split at contacts
+    ks = []
+    k = 1
+    while F * k * k <= max_facets:
+        es, kt, st = uniform(list(group.values()), k, ff_tol=1e-4, solve_tol=1e-6)
+        total = [kt + x for x in st]  # per problem: the shared kernel and its own solve
+        if kt + max(st) < BEST_OF_TWO_S:  # the faster of two whole calls (not kernel and solve from different ones)
+            _, kt2, st2 = uniform(list(group.values()), k, ff_tol=1e-4, solve_tol=1e-6)
+            total = [min(t, kt2 + x) for t, x in zip(total, st2, strict=True)]
+        for n, e, t_ in zip(group, es, total, strict=True):
+            sols[n].append(e)
+            times[n].append(t_)
+        ks.append(k)
+        k += 1
+    cache.mkdir(parents=True, exist_ok=True)
+    for n in group:
+        np.savez(cache / f"uniform_{n}_{tag}.npz", k=np.array(ks), E=np.array(sols[n]), seconds=np.array(times[n]))
 
 
 def uniform_timing_note(results: dict, started: float, ended: float = math.inf) -> str:
@@ -765,7 +780,8 @@ def remeasure(results: dict, a: argparse.Namespace) -> None:
                                     quadratic_reference(n, ps[n], siblings=ps)) for n in names}
         for n in names:
             sib = {m: (ps[m], finers[m]) for m in names}
-            results[n]["uniform"] = uniform_curve(n, ps[n], finers[n], a.uniform_facets, siblings=sib)
+            results[n]["uniform"] = uniform_curve(n, ps[n], finers[n], a.uniform_facets, siblings=sib,
+                                                  threads=a.threads)
             results[n]["finer"] = finer_summary(refs[n], finers[n])
             results[n]["pieces"] = pieces_of(ps[n])
             for c in results[n]["cases"]:
@@ -795,7 +811,7 @@ def run_group(names: Sequence[str], accs: Sequence[float], a: argparse.Namespace
     for n in names:
         t0 = time.perf_counter()
         sib = {m: (ps[m], finers[m]) for m in names}
-        curves[n] = uniform_curve(n, ps[n], finers[n], a.uniform_facets, siblings=sib)
+        curves[n] = uniform_curve(n, ps[n], finers[n], a.uniform_facets, siblings=sib, threads=a.threads)
         log(f"{n}: uniform curve ({time.perf_counter() - t0:.1f} s)")
     out = {}
     for n in names:
@@ -805,7 +821,7 @@ def run_group(names: Sequence[str], accs: Sequence[float], a: argparse.Namespace
         if len(mine) < len(accs):
             log(f"  {n}: requests {[x for x in accs if x not in mine]} left out (SCENE_ACC)")
         for acc in mine:
-            c = run_case_limited(p, acc, a.max_facets, a.limit, not a.last_level, a.basis)
+            c = run_case_limited(p, acc, a.max_facets, a.limit, not a.last_level, a.basis, a.threads)
             if "irradiance" in c:
                 c["m"] = measure(c, ref, finer)
                 log(
@@ -836,7 +852,7 @@ def write(results: dict, a: argparse.Namespace, suffix: str, wall: float, starte
         "",
         f"Generated by `python -m benchmarks.accuracy{' --quick' if a.quick else ''}"
         f"{'' if a.basis == 'auto' else ' --basis ' + a.basis}` on {platform.node()} "
-        f"({os.cpu_count()} CPUs, torch {torch.__version__}, {torch.get_num_threads()} thread(s), "
+        f"({os.cpu_count()} CPUs, torch {torch.__version__}, renders and uniform curves on {a.threads} thread(s), "
         f"OMP_WAIT_POLICY={os.environ.get('OMP_WAIT_POLICY')}), {wall / 60:.1f} min.",
         "",
         "`ti.render(scene, reflectance, light, illuminant, accuracy=a, wavelengths=[550 nm], "
@@ -974,7 +990,8 @@ def main(argv: Sequence[str] | None = None) -> None:
     ap.add_argument("--finer-facets", type=int, default=10_000, help="facet cap of the finer solution")
     ap.add_argument("--uniform-facets", type=int, default=5_000, help="facet cap of the uniform timing curve")
     ap.add_argument("--limit", type=float, default=300.0, help="seconds per render before it is skipped")
-    ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--threads", type=int, default=None,
+                    help="torch threads of the timed renders and uniform curves (default: all cores, as Mitsuba)")
     ap.add_argument("--basis", choices=["auto", "constant", "quadratic"], default="auto",
                     help="render(basis=...) (suffix _constant / _quadratic when not auto)")
     ap.add_argument("--last-level", action="store_true",
@@ -988,7 +1005,11 @@ def main(argv: Sequence[str] | None = None) -> None:
         "and rewrite the report, without rendering again",
     )
     a = ap.parse_args(argv)
-    torch.set_num_threads(a.threads)
+    a.threads = a.threads or os.cpu_count() or 1
+    # the timed work runs in forked children on a.threads threads; the parent stays on one: a child forked from a
+    # process that ran OpenMP regions on two threads hung in its first one (the W shape at 2e-3: over a 60 s limit
+    # twice, against 0.17 s when the parent had stayed on one)
+    torch.set_num_threads(1)
     torch.set_grad_enabled(False)
     names = a.scenes or (QUICK_SCENES if a.quick else FULL_SCENES)
     accs = a.accuracies or (QUICK_ACC if a.quick else FULL_ACC)
@@ -1035,7 +1056,7 @@ def main(argv: Sequence[str] | None = None) -> None:
             t0 = time.perf_counter()
             results[n]["mitsuba_now"] = mitsuba_curve(mr.load_reference(n), MITSUBA_SPP)
             log(f"{n}: Mitsuba curve ({time.perf_counter() - t0:.1f} s)")
-        torch.set_num_threads(a.threads)
+        torch.set_num_threads(1)
         saved = {"results": results, "wall": time.perf_counter() - t_start, "started": started}
         (CACHE / f"results{suffix}.json").write_text(json.dumps(_jsonable(saved)))
     out = write(results, a, suffix, time.perf_counter() - t_start, started, time.time())
