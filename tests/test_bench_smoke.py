@@ -122,6 +122,20 @@ def test_accuracy_benchmark_one_tiny_case(tmp_path: Path) -> None:
     assert ab.uniform_timing_note(undated, t - 60, t + 60).startswith("timed not in this run but (read from")
 
 
+def test_accuracy_benchmark_times_renders_on_the_threads_asked_for(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Renders run in a forked child on ``threads`` torch threads (all cores by default, as Mitsuba), while the
+    parent keeps its own count (one in ``main``: a child forked after OpenMP regions on two threads hung)."""
+    import torch
+
+    from benchmarks import accuracy as ab
+
+    monkeypatch.setattr(ab, "run_case", lambda *a, **k: {"seconds": 3.0, "threads": torch.get_num_threads()})
+    before = torch.get_num_threads()
+    for n in (1, 2):
+        assert ab.run_case_limited({}, 1e-2, 100, 60.0, threads=n)["threads"] == n
+    assert torch.get_num_threads() == before
+
+
 def test_accuracy_benchmark_quadratic_reference(tmp_path: Path) -> None:
     """The quadratic-basis reference: two levels, cached, used as the finer solution where the light is smooth, and
     none under a sky through blockable pairs (the Cornell box)."""

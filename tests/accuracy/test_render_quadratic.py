@@ -353,6 +353,33 @@ def test_contacts_among_occluders_are_planned_by_halving():
     assert rep.leaves == 4 * 50  # every piece split once
 
 
+def test_the_plan_splits_at_contacts_once_and_looks_for_blockers_only_with_contacts(groove, monkeypatch):
+    """``plan`` splits the scene at its contacts once, for the light's test and the first leaves (twice before), and
+    looks for blockable pairs (``light_is_rough(..., "sky")``) only where the split found contacts: they change
+    ``smooth_light`` only there. Same plan as with the split and the test done again."""
+    import sys
+
+    settings = sys.modules["torch_interreflect.accuracy.moments_settings"]
+    plan_module = sys.modules["torch_interreflect.accuracy.plan"]
+    splits: list = []
+    rough: list = []
+    real_split, real_rough = settings.split_at_contacts, settings.light_is_rough
+    for module in (plan_module, settings, sys.modules["torch_interreflect.accuracy.moments_plan"]):
+        monkeypatch.setattr(module, "split_at_contacts", lambda sc: splits.append(1) or real_split(sc), raising=False)
+    monkeypatch.setattr(settings, "light_is_rough", lambda sc, light, **kw: rough.append(light) or real_rough(
+        sc, light, **kw))
+    r = torch.full((8,), 0.9, dtype=D)
+    p = ti.accuracy.plan(groove, r, SUN, ONE, wavelengths=WL, accuracy=1e-2)
+    assert splits == [1] and len(rough) == 1 and rough[0] is SUN  # no contacts: the sun's test alone
+    box = ti.scenes.cornell_box(light=False, dtype=D)
+    assert not settings.smooth_light(box, "uniform") and rough[-1] == "sky"  # contacts: blockable pairs decide
+    assert settings.smooth_light(box, "uniform", real_split(box)[0]) is False
+    # the plan is the one the split and the tests made again give
+    monkeypatch.undo()
+    again = ti.accuracy.plan(groove, r, SUN, ONE, wavelengths=WL, accuracy=1e-2)
+    assert p.leaves.num_facets == again.leaves.num_facets and p.report.estimated == again.report.estimated
+
+
 def test_float32_batches_and_area_lights(groove):
     """float32 scenes, a batch of reflectances (each member as its own render) and an area light on the polynomial
     basis."""
