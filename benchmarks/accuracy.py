@@ -15,9 +15,10 @@ and max, against
   solutions are cached under ``out/accuracy/`` (never committed).
 
 Each render runs in a forked child on all cores (``--threads``; the parent stays on one thread, see :func:`main`)
-with a time limit (a case over the limit is reported as skipped) and with ``max_facets`` as a cap; the ``AccuracyWarning`` (target not reachable) is recorded, not raised. For the cost
-side the report sets the adaptive time against uniform refinement ``k = 1, 2, ...`` timed in the same run (and
-against the ``ours k=1..4`` and Mitsuba rows of ``results/speed_vs_error.md``, timed on 2 threads).
+with a time limit (a case over the limit is reported as skipped) and with ``max_facets`` as a cap; the
+``AccuracyWarning`` (target not reachable) is recorded, not raised. For the cost side the report sets the adaptive
+time against uniform refinement ``k = 1, 2, ...`` timed in the same run (and against the ``ours k=1..4`` and
+Mitsuba rows of ``results/speed_vs_error.md``, timed on 2 threads).
 
 Usage::
 
