@@ -427,9 +427,13 @@ def uniform_curve(
         group = {name: p, **{n: v[0] for n, v in (siblings or {}).items() if n != name}}
         proc = mp.get_context("fork").Process(target=_time_uniform, args=(group, max_facets, cache, tag, threads))
         proc.start()
-        proc.join()
+        proc.join(UNIFORM_LIMIT_S)
+        if proc.is_alive():  # hung (or far slower than any curve measured): stop it rather than wait forever
+            proc.kill()
+            proc.join()
         if proc.exitcode != 0 or not path.exists():
-            raise RuntimeError(f"timing the uniform curve of {name} failed (exit {proc.exitcode})")
+            raise RuntimeError(f"timing the uniform curve of {name} failed (exit {proc.exitcode}; "
+                               f"limit {UNIFORM_LIMIT_S:.0f} s)")
     z = np.load(path)
     timed = path.stat().st_mtime  # when the curve was timed: this run, or an earlier one whose cache was kept
     F = pieces_of(p)
@@ -439,6 +443,10 @@ def uniform_curve(
         out.append({"k": int(k), "facets": F * int(k) ** 2, "seconds": float(t), "rmse": rmse, "max": mx,
                     "timed": timed})
     return out
+
+
+#: Seconds a uniform curve's child may take before it is stopped (the longest measured: about 60 s per geometry)
+UNIFORM_LIMIT_S = 1800.0
 
 
 def _time_uniform(group: dict, max_facets: int, cache: Path, tag: str, threads: int) -> None:
@@ -462,8 +470,10 @@ def _time_uniform(group: dict, max_facets: int, cache: Path, tag: str, threads: 
         ks.append(k)
         k += 1
     cache.mkdir(parents=True, exist_ok=True)
-    for n in group:
-        np.savez(cache / f"uniform_{n}_{tag}.npz", k=np.array(ks), E=np.array(sols[n]), seconds=np.array(times[n]))
+    for n in group:  # written whole or not at all: a child killed mid-write leaves no file a later run would trust
+        tmp = cache / f"uniform_{n}_{tag}.{os.getpid()}.tmp.npz"
+        np.savez(tmp, k=np.array(ks), E=np.array(sols[n]), seconds=np.array(times[n]))
+        os.replace(tmp, cache / f"uniform_{n}_{tag}.npz")
 
 
 def uniform_timing_note(results: dict, started: float, ended: float = math.inf) -> str:
@@ -1006,6 +1016,7 @@ def main(argv: Sequence[str] | None = None) -> None:
         "and rewrite the report, without rendering again",
     )
     a = ap.parse_args(argv)
+    asked_threads = a.threads
     a.threads = a.threads or os.cpu_count() or 1
     # the timed work runs in forked children on a.threads threads; the parent stays on one: a child forked from a
     # process that ran OpenMP regions on two threads hung in its first one (the W shape at 2e-3: over a 60 s limit
@@ -1022,6 +1033,8 @@ def main(argv: Sequence[str] | None = None) -> None:
         saved = json.loads((CACHE / f"results{suffix}.json").read_text())
         if "results" not in saved:  # written by an older version of this script
             saved = {"results": saved, "wall": math.nan}
+        # the renders' threads are those of the run that rendered (files from before they were stored: one thread)
+        a.threads = asked_threads or int(saved.get("threads", 1))
         # a file from before "started" was stored: it was written at the end of its run
         started = saved.get("started", (CACHE / f"results{suffix}.json").stat().st_mtime - saved["wall"])
         remeasure(saved["results"], a)
@@ -1048,7 +1061,7 @@ def main(argv: Sequence[str] | None = None) -> None:
         results.update(run_group(group, accs, a, log))
         CACHE.mkdir(parents=True, exist_ok=True)
         wall = time.perf_counter() - t_start
-        saved = {"results": results, "wall": wall, "started": started}
+        saved = {"results": results, "wall": wall, "started": started, "threads": a.threads}
         (CACHE / f"results{suffix}.json").write_text(json.dumps(_jsonable(saved)))
     if not a.no_mitsuba and mr.available():
         # after every render (Dr.Jit's threads and JIT stay in this process; the renders' children are forked)
@@ -1058,7 +1071,7 @@ def main(argv: Sequence[str] | None = None) -> None:
             results[n]["mitsuba_now"] = mitsuba_curve(mr.load_reference(n), MITSUBA_SPP)
             log(f"{n}: Mitsuba curve ({time.perf_counter() - t0:.1f} s)")
         torch.set_num_threads(1)
-        saved = {"results": results, "wall": time.perf_counter() - t_start, "started": started}
+        saved = {"results": results, "wall": time.perf_counter() - t_start, "started": started, "threads": a.threads}
         (CACHE / f"results{suffix}.json").write_text(json.dumps(_jsonable(saved)))
     out = write(results, a, suffix, time.perf_counter() - t_start, started, time.time())
     log(f"wrote {out}")
