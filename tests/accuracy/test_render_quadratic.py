@@ -381,9 +381,9 @@ def test_the_plan_splits_at_contacts_once_and_looks_for_blockers_only_with_conta
 
 
 def test_refinement_from_given_pieces_is_the_refinement_from_its_own_split():
-    """``refine_moments(pieces=...)``, the split ``plan`` shares with the light's test, gives the leaves and estimates
-    of its own split, on a scene with contacts (the Cornell box's blocks on its floor) where the pieces are new facets,
-    refined by halving and then once more from the same pieces."""
+    """``refine_moments(contact_split=...)``, the split ``plan`` shares with the light's test, gives the leaves and
+    estimates of its own split, on a scene with contacts (the Cornell box's blocks on its floor) where the pieces are
+    new facets, refined by halving and then once more from the same pieces."""
     import sys
 
     from torch_interreflect.accuracy.moments_plan import refine_moments
@@ -394,14 +394,14 @@ def test_refinement_from_given_pieces_is_the_refinement_from_its_own_split():
     pb = plan_module._problem(box, torch.full((box.num_facets,), 0.5, dtype=D), "uniform", ONE, None, 0.05, WL, False)
     pb.quadrature_tol = moment_quadrature_tol(pb.accuracy)
     kw = {"max_unknowns": 12_000, "max_iterations": 1, "show": False, "t_start": 0.0, "halving": True}
-    pieces = ti.geometry.split_at_contacts(box)
+    contact_split = ti.geometry.split_at_contacts(box)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", AccuracyWarning)
-        runs = [refine_moments(pb, **kw)] + [refine_moments(pb, pieces=pieces, **kw) for _ in range(2)]
+        runs = [refine_moments(pb, **kw)] + [refine_moments(pb, contact_split=contact_split, **kw) for _ in range(2)]
     for st in runs[1:]:
         assert torch.equal(st.leaves.scene.corners, runs[0].leaves.scene.corners)
         assert torch.equal(st.leaves.user, runs[0].leaves.user) and torch.equal(st.est, runs[0].est)
-    assert runs[0].leaves.scene.num_facets == 4 * pieces[0].num_facets  # every piece split once
+    assert runs[0].leaves.scene.num_facets == 4 * contact_split[0].num_facets  # every piece split once
 
 
 def test_float32_batches_and_area_lights(groove):

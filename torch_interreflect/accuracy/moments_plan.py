@@ -308,7 +308,7 @@ def _sky_start(pb: Problem) -> int:
 
 def refine_moments(pb: Problem, *, max_unknowns: int, max_iterations: int, show: bool,
                    t_start: float, halving: bool = False,
-                   pieces: tuple[Scene, Tensor] | None = None) -> MomentRefinement:
+                   contact_split: tuple[Scene, Tensor] | None = None) -> MomentRefinement:
     """Refine until the estimated discretisation error is within its share of the request (module docstring).
 
     Args:
@@ -320,10 +320,10 @@ def refine_moments(pb: Problem, *, max_unknowns: int, max_iterations: int, show:
         halving: Estimate from the change of each user facet's output when its leaves are split
             (:data:`Q_HALVING`), not from the degrees' difference: where the light is rough
             (:func:`~.moments_settings.smooth_light`). Every user facet is split at least once.
-        pieces: ``split_at_contacts(pb.scene)`` already computed (the first leaves and their user facets); computed
-            here when None.
+        contact_split: ``split_at_contacts(pb.scene)`` already computed (the pieces, the first leaves, and their user
+            facets); computed here when None.
     """
-    pieces, piece_user = split_at_contacts(pb.scene) if pieces is None else pieces
+    pieces, piece_user = split_at_contacts(pb.scene) if contact_split is None else contact_split
     leaves = Leaves(pieces, piece_user.to(pb.scene.device))
     share = pb.accuracy * (pb.budget["discretisation"] + pb.budget.get("sparsification", 0.0))
     if halving:

@@ -319,9 +319,9 @@ def plan(
     pb = _problem(scene, reflectance, light, illuminant, camera, accuracy, wavelengths, extrapolate and not quadratic)
     show = progress if progress is not None else scene.num_facets >= 2000 or accuracy < 3e-3
     if quadratic:
-        pieces = split_at_contacts(scene)  # once for the light's test and the planner's first leaves
+        contact_split = split_at_contacts(scene)  # once for the light's test and the planner's first leaves
         return _plan_quadratic(pb, light, max_facets, max_iterations, show, t_start,
-                               not smooth_light(scene, light, pieces[0]), pieces)
+                               not smooth_light(scene, light, contact_split[0]), contact_split)
     return _plan_constant(pb, light, max_facets, max_iterations, show, t_start)
 
 
@@ -376,13 +376,14 @@ def _plan_constant(pb: Problem, light: Any, max_facets: int, max_iterations: int
 
 
 def _plan_quadratic(pb: Problem, light: Any, max_facets: int, max_iterations: int, show: bool, t_start: float,
-                    halving: bool, pieces: tuple[Scene, Tensor]) -> Plan:
+                    halving: bool, contact_split: tuple[Scene, Tensor]) -> Plan:
     """:func:`plan` on the polynomial basis (:mod:`.moments_plan`); ``halving``: the light is rough over some piece
     (:func:`~.moments_settings.smooth_light`), so the error is estimated from splitting leaves, not from the degrees.
-    ``pieces``: the scene split at contacts (:func:`~torch_interreflect.geometry.split_at_contacts`)."""
+    ``contact_split``: the scene split at contacts, pieces and their user facets
+    (:func:`~torch_interreflect.geometry.split_at_contacts`)."""
     pb.quadrature_tol = moment_quadrature_tol(pb.accuracy)
     kw = {"max_unknowns": max_facets, "max_iterations": max_iterations, "show": show, "t_start": t_start,
-          "pieces": pieces}
+          "contact_split": contact_split}
     st = refine_moments(pb, halving=halving, **kw)
     if st.rough is not None and bool(st.rough.any()):
         # a rough light that the first test missed (a shadow edge between its 4 × 4 rays): the degrees' difference
