@@ -63,7 +63,7 @@ def _sun(sc: Scene, K: MomentFormFactors, d: Tensor, shadows: Literal["auto"] | 
     idx = shadow_candidates(sc, d, shadows)
     if idx.numel():
         x, wq = facet_rule(sc.corners[idx], n)
-        caster = RayCaster(sc)
+        caster = RayCaster.of(sc)
         inside = x + 1e-9 * (sc.centroids[idx][:, None] - x) + caster.eps * sc.normals[idx][:, None]  # off the facet
         hit = caster.first_hit(inside.reshape(-1, 3).numpy(), (-d).expand(inside.shape[0] * inside.shape[1], 3).numpy())
         lit = torch.from_numpy(hit < 0).reshape(wq.shape).to(torch.float64)
@@ -142,7 +142,7 @@ def sky_rays(scene: Scene, form_factors: MomentFormFactors, *, backfaces: Litera
         facing_any(sc, one_way=True) if backfaces == "auto" else torch.ones(F, dtype=torch.bool))
     escape_ids = torch.nonzero(occ & maybe_back).reshape(-1)
     back_ids = torch.nonzero(maybe_back & ~occ).reshape(-1)
-    caster = RayCaster(sc) if escape_ids.numel() or back_ids.numel() else None
+    caster = RayCaster.of(sc) if escape_ids.numel() or back_ids.numel() else None
     escape = torch.zeros(0, K.size, dtype=torch.float64)
     back = torch.zeros(0, K.size, dtype=torch.float64)
     escape_back = torch.zeros(0, K.size, dtype=torch.float64) if rows else None

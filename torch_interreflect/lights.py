@@ -119,7 +119,7 @@ def lit_fraction(
         n = int(shadow_samples)
         g = (torch.arange(n, dtype=torch.float64) + 0.5) / n
         x, jac = bilinear(sc.corners[idx], g.repeat_interleave(n), g.repeat(n))
-        caster = RayCaster(sc)
+        caster = RayCaster.of(sc)
         hit = caster.first_hit(x.reshape(-1, 3).numpy(), (-d).expand(x.shape[0] * x.shape[1], 3).numpy())
         free = torch.from_numpy(hit < 0).reshape(jac.shape).to(torch.float64)
         frac[idx] = (free * jac).sum(1) / jac.sum(1)
@@ -333,7 +333,7 @@ def sky(
         sc = _detached_cpu(scene)
         escape_pos = torch.nonzero(approx).reshape(-1)  # positions in the output; the facets are ids[pos]
         back_pos = torch.nonzero(maybe_back & ~approx).reshape(-1)
-        caster = RayCaster(sc) if escape_pos.numel() or back_pos.numel() else None  # one BVH for both passes
+        caster = RayCaster.of(sc) if escape_pos.numel() or back_pos.numel() else None  # one BVH for both passes
         if escape_pos.numel():
             # the escaping rays' count as the value, the gradient of 1 − Σ_j F_ij (which carries the moving shadow
             # edges of its occluded pairs, see form_factors) as its derivative

@@ -73,7 +73,7 @@ def sky_open_parts(scene: Scene, form_factors: FormFactorOperator, *, backfaces:
     maybe_back = facing_any(scene, one_way=True) if backfaces == "auto" else torch.ones(F, dtype=torch.bool)
     ray_cast = torch.nonzero(occ).reshape(-1)
     back_only = torch.nonzero(maybe_back & ~occ).reshape(-1)
-    caster = RayCaster(sc) if ray_cast.numel() or back_only.numel() else None
+    caster = RayCaster.of(sc) if ray_cast.numel() or back_only.numel() else None
     if ray_cast.numel():  # one first-hit cast gives both counts
         e, b = hemisphere_fractions(sc, ray_cast, samples=sky_samples, points=8, caster=caster)
         escape[ray_cast] = e  # type: ignore[assignment]

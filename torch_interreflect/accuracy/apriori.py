@@ -161,7 +161,7 @@ def estimate(scene: Scene, K: FormFactors, refl: Tensor, g: Tensor, h: Tensor, l
     n = scene.num_facets
     sc = scene.to(torch.float64).to("cpu")
     x, facet, index = _corner_points(sc, plane_eps(scene))
-    caster = RayCaster(sc)
+    caster = RayCaster.of(sc)
     factors, covered, _ = point_form_factors(scene, x, facet, samples=GATHER_SAMPLES, caster=caster)
     e0 = _direct_at(light, sc, x, facet, index, factors, covered, g, caster)  # [n, 4]
     h64 = h.detach().to(torch.float64).cpu()

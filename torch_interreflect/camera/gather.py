@@ -288,7 +288,7 @@ def gather_operator(
     op = _CACHE.get(key) if cache else None
     if op is None:
         t0 = time.perf_counter()
-        caster = RayCaster(scene.to(torch.float64).to("cpu"))
+        caster = RayCaster.of(scene.to(torch.float64).to("cpu"))
         frag = primary_fragments(scene, view, int(supersample), caster, edge_supersample=edge,
                                  sun=_sun_of(light, scene.num_facets))
         op = Gather(view, frag, scene.num_facets, scene.dtype, scene.device, int(supersample), int(samples), edge)

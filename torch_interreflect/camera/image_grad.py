@@ -235,7 +235,7 @@ def image_gradient(op: Gather, scene: Scene, light: Any = "uniform", *, spacing:
         if bool(((1.0 - op.open_sky) - front > slack).any()):
             warnings.warn("image_gradient: the part of the sky hidden by the backs of facets is held fixed (its "
                           "change carries no gradient)", GradientWarning, stacklevel=3)
-    caster = RayCaster(scene.detach().to(torch.float64).to("cpu"))
+    caster = RayCaster.of(scene.detach().to(torch.float64).to("cpu"))
     pixel, weight, side_fragment, side_facet = edge_samples(op, scene, caster, float(spacing))
     delta = weights = direct = None
     dev = scene.device

@@ -126,7 +126,7 @@ def point_form_factors(
     front = facing_others(scene)  # [F, F]: some corner of j strictly in front of i's plane
     fi, fj = torch.nonzero(front, as_tuple=True)
     need = blocker_candidates(sc, fi, fj, eps) if fi.numel() else torch.zeros(0, dtype=torch.bool)
-    caster = caster if caster is not None else RayCaster(sc)
+    caster = caster if caster is not None else RayCaster.of(sc)
     gen = torch.Generator().manual_seed(int(seed))
     o = torch.as_tensor(caster.origin)
     ys, ws = _target_samples(sc.corners, sc.is_triangle.cpu(), int(samples), gen)

@@ -119,7 +119,7 @@ def hemisphere_fractions(scene: Scene, idx: Tensor, *, samples: int, points: int
     Raises:
         ValueRangeError: ``samples`` or ``points`` is not an integer ≥ 1.
     """
-    caster = caster if caster is not None else RayCaster(scene.to(torch.float64).to("cpu"))
+    caster = caster if caster is not None else RayCaster.of(scene.to(torch.float64).to("cpu"))
     kern = loops("visibility")
     K, D = idx.numel(), samples * samples
     out = {"escape": torch.empty(K, dtype=torch.float64) if escape else None,
@@ -147,7 +147,7 @@ def hemisphere_point_fractions(scene: Scene, idx: Tensor, *, samples: int, point
         "back": [K, P]}`` (the fractions only where asked for), float64 on the CPU, ``P = points²``.
     """
     sc = scene.to(torch.float64).to("cpu")
-    caster = caster if caster is not None else RayCaster(sc)
+    caster = caster if caster is not None else RayCaster.of(sc)
     K, P, D = idx.numel(), points * points, samples * samples
     out = {"points": torch.empty(K, P, 3, dtype=torch.float64), "weights": torch.empty(K, P, dtype=torch.float64)}
     for flag, want in (("escape", escape), ("back", back)):

@@ -139,7 +139,7 @@ def hierarchical_form_factors(
     info["nodes"] = int(tree.parent.size)
 
     t = time.perf_counter()
-    caster = RayCaster(sc) if occlusion is not False else None
+    caster = RayCaster.of(sc) if occlusion is not False else None
     cvis = ClusterVisibility(sc, tree, occlusion, cluster_samples, eps, caster)
     fa, fb, fv, na, nb, stats = traverse(tree, float(eta), eps, cvis, progress)
     info.update(stats)

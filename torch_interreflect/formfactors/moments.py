@@ -37,6 +37,7 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass, field
+from functools import cache
 from typing import Any, Literal
 
 import numpy as np
@@ -232,10 +233,17 @@ def _pairs(sc: Scene, degree: int, tol: float, eps: float, occlusion: Literal["a
     return {"dom": dom, "tgt": tgt, "need": need, "need_rank": np.cumsum(need.numpy()) - 1,
             "exact": np.zeros((int(need.sum()), nb, nb)), "pairs": pairs, "fine": (touch | clip_d).numpy(),
             "rules": (off, ru, rv, rw, edge_rule, vertex_rule), "buf": buf,
-            "angular": (*np.polynomial.legendre.leggauss(n_reg), *np.polynomial.legendre.leggauss(n_fine),
+            "angular": (*_leggauss(n_reg), *_leggauss(n_fine),
                         angular_panel(tol)),
             "corners": sc.corners.contiguous().numpy(), "normals": sc.normals.contiguous().numpy(),
             "triangle": sc.is_triangle.cpu().numpy().astype(np.bool_), "scene": sc}
+
+
+@cache
+def _leggauss(n: int) -> tuple[np.ndarray, np.ndarray]:
+    """Gauss-Legendre nodes and weights on [-1, 1], shared between calls (the compiled loops only read them; numba
+    would compile again for read-only arrays)."""
+    return np.polynomial.legendre.leggauss(n)
 
 
 def _cast(kern: Any, setup: dict[str, Any], sel: np.ndarray, ns: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
@@ -251,7 +259,7 @@ def _cast(kern: Any, setup: dict[str, Any], sel: np.ndarray, ns: int, seed: int)
     blocked = np.zeros(int(per.sum()), dtype=np.bool_)
     if blocked.size == 0:
         return ray_start, blocked
-    caster = RayCaster(setup["scene"])
+    caster = RayCaster.of(setup["scene"])
     origin = np.asarray(caster.origin, dtype=np.float64)
     tri = setup["triangle"]
     s0 = 0

@@ -22,7 +22,7 @@ def monte_carlo(
     """The paper's estimator (§5.2): random points on each facet, cosine-distributed directions, first hit."""
     check_count(samples, "samples")
     sc = scene.to(torch.float64).to("cpu")
-    caster = RayCaster(sc)
+    caster = RayCaster.of(sc)
     F = sc.num_facets
     normals = sc.normals
     # orthonormal frame per facet

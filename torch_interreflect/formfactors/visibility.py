@@ -177,7 +177,7 @@ class PointVisibility:
                  max_levels: int = 6, angle: float | None = None, jitter: bool = True) -> None:
         check_visibility_options(n, tol, angle, jitter)
         sc = _detached(sc)
-        self.caster = caster if caster is not None else RayCaster(sc)
+        self.caster = caster if caster is not None else RayCaster.of(sc)
         self.n = int(n)
         self.tol = tol
         self.max_levels = int(max_levels)

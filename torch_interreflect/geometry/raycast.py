@@ -76,6 +76,20 @@ class RayCaster:
         #: offset (m) that keeps a ray from hitting the facet it starts on or ends at
         self.eps = 1e-6 * self.size
 
+    @classmethod
+    def of(cls, scene: Scene) -> RayCaster:
+        """The ray caster of ``scene``, built once while its corners are unchanged (:meth:`Scene.derived`; a
+        render's moments, sky and shadows share one instead of building Embree's scene each). Corners that
+        require grad get a new one each call.
+
+        Example:
+            >>> import torch_interreflect as ti
+            >>> box = ti.scenes.closed_box(divisions=1)
+            >>> ti.geometry.RayCaster.of(box) is ti.geometry.RayCaster.of(box)
+            True
+        """
+        return scene.derived("ray_caster", lambda: cls(scene))
+
     def segments_blocked(self, start: np.ndarray, end: np.ndarray, batch: int = 1 << 20) -> np.ndarray:
         """Whether anything lies strictly between ``start`` and ``end``.
 

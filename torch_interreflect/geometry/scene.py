@@ -18,7 +18,9 @@ from torch import Tensor
 from .._checks import check_count
 from ..errors import ShapeError
 from .checks import check_facets
+from .derived import DerivedCache
 from .duplicates import resolve_duplicates
+from .measures import facet_areas, facet_centroids, facet_diameters, facet_normals
 
 __all__ = ["Scene", "area_average", "split_quads"]
 
@@ -227,7 +229,7 @@ class Scene:
     def _drop_duplicates(self, mode: str) -> None:
         """Apply ``duplicates=`` (see :class:`Scene`) to the validated facets."""
         cd = self._corners.detach().to("cpu", torch.float64)
-        keep = resolve_duplicates(cd.numpy(), _normals(cd).numpy(), mode)
+        keep = resolve_duplicates(cd.numpy(), facet_normals(cd).numpy(), mode)
         if keep is not None:
             k = torch.as_tensor(keep, device=self._corners.device)
             self._corners, self._is_triangle = self._corners[k].contiguous(), self._is_triangle[k]
@@ -292,43 +294,54 @@ class Scene:
     def device(self) -> torch.device:
         return self._corners.device
 
+    def derived(self, key: Any, make: Any) -> Any:
+        """``make()``, computed once while the corners are unchanged (:mod:`.derived`; never where they require
+        grad): the areas, normals, centroids and diameters below, and :meth:`.raycast.RayCaster.of`."""
+        cache = self.__dict__.get("_derived")
+        if cache is None:
+            cache = self.__dict__["_derived"] = DerivedCache()
+        return cache.get(self._corners, key, make)
+
+    def __getstate__(self) -> dict[str, Any]:
+        state = self.__dict__.copy()
+        state.pop("_derived", None)  # a ray caster does not pickle; the values are made again
+        return state
+
     @property
     def areas(self) -> Tensor:
         """Facet areas ``[F]`` in m²."""
-        return _areas(self._corners)
+        return self.derived("areas", lambda: facet_areas(self._corners))
 
     @property
     def normals(self) -> Tensor:
         """Unit normals ``[F, 3]`` of the reflecting side."""
-        return _normals(self._corners)
+        return self.derived("normals", lambda: facet_normals(self._corners))
 
     @property
     def centroids(self) -> Tensor:
         """Area centroids ``[F, 3]`` in metres."""
-        c = self._corners
-        a, b, cc, d = c.unbind(1)
-        # split into triangles (a, b, c) and (a, c, d); a collapsed quad gives a zero second triangle
-        a1 = 0.5 * torch.linalg.cross(b - a, cc - a, dim=-1).norm(dim=-1)
-        a2 = 0.5 * torch.linalg.cross(cc - a, d - a, dim=-1).norm(dim=-1)
-        g1 = (a + b + cc) / 3
-        g2 = (a + cc + d) / 3
-        return (a1[:, None] * g1 + a2[:, None] * g2) / (a1 + a2)[:, None]
+        return self.derived("centroids", lambda: facet_centroids(self._corners))
 
     @property
     def diameters(self) -> Tensor:
         """Largest distance between two corners of each facet ``[F]`` in metres."""
-        c = self._corners
-        return (c[:, :, None, :] - c[:, None, :, :]).norm(dim=-1).flatten(1).max(dim=1).values
+        return self.derived("diameters", lambda: facet_diameters(self._corners))
 
     def to(self, *args: Any, **kwargs: Any) -> Scene:
-        """Move/cast the corners like :meth:`torch.Tensor.to` (integer tensors keep their dtype)."""
+        """Move/cast the corners like :meth:`torch.Tensor.to` (integer tensors keep their dtype); the scene itself
+        when nothing changes (as a tensor's ``to``), with what it has cached."""
         c = self._corners.to(*args, **kwargs)
+        if c is self._corners:
+            return self
         dev = c.device
         mat = self._material.to(dev) if self._material is not None else None
         return Scene.from_parts(c, self._is_triangle.to(dev), mat, self.material_names)
 
     def detach(self) -> Scene:
-        """The same facets with corners detached from autograd (ray casting, caches)."""
+        """The same facets with corners detached from autograd (ray casting, caches); the scene itself when its
+        corners do not require grad."""
+        if not self._corners.requires_grad:
+            return self
         return Scene.from_parts(self._corners.detach(), self._is_triangle, self._material, self.material_names)
 
     def __len__(self) -> int:
@@ -464,17 +477,6 @@ def split_quads(corners: Tensor, ku: int, kv: int) -> Tensor:
     grid = (1 - su) * (1 - sv) * a + su * (1 - sv) * b + su * sv * cc + (1 - su) * sv * d  # [Q, ku+1, kv+1, 3]
     sub = torch.stack([grid[:, :-1, :-1], grid[:, 1:, :-1], grid[:, 1:, 1:], grid[:, :-1, 1:]], dim=3)
     return sub.reshape(corners.shape[0], ku * kv, 4, 3)
-
-
-def _normals(c: Tensor) -> Tensor:
-    # Newell-like robust normal of a (possibly collapsed) quad: cross product of the diagonals.
-    n = torch.linalg.cross(c[:, 2] - c[:, 0], c[:, 3] - c[:, 1], dim=-1)
-    return n / n.norm(dim=-1, keepdim=True).clamp_min(torch.finfo(c.dtype).tiny)
-
-
-def _areas(c: Tensor) -> Tensor:
-    # Area of a planar quad = half the norm of the cross product of its diagonals (exact for triangles too).
-    return 0.5 * torch.linalg.cross(c[:, 2] - c[:, 0], c[:, 3] - c[:, 1], dim=-1).norm(dim=-1)
 
 
 def area_average(values: Tensor, index: Tensor, weights: Tensor, size: int) -> Tensor:
