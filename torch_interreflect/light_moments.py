@@ -46,9 +46,8 @@ __all__ = ["SkyRays", "light_is_rough", "light_moments", "sky_estimates", "sky_r
 def _project(K: MomentFormFactors, facets: Tensor, points: Tensor, weights: Tensor, values: Tensor) -> Tensor:
     """``Σ_q w_q ψ_a(x_q) v_q`` per facet ``[k, nb]`` from points ``[k, Q, 3]``, weights ``[k, Q]`` (summing to 1
     per facet) and values ``[k, Q]``."""
-    k, Q = weights.shape
-    psi = K.basis.evaluate(facets.repeat_interleave(Q), points.reshape(-1, 3)).reshape(k, Q, -1)
-    return (psi * (weights * values)[..., None]).sum(1)
+    psi = K.basis.evaluate_on(facets, points)  # [k, Q, nb]
+    return torch.bmm((weights * values)[:, None, :].to(psi.dtype), psi)[:, 0]
 
 
 def _sun(sc: Scene, K: MomentFormFactors, d: Tensor, shadows: Literal["auto"] | bool,

@@ -89,6 +89,23 @@ def test_basis_rejects_bad_input():
         b.evaluate(torch.tensor([0]), torch.zeros(3))
     with pytest.raises(ValueRangeError, match="facet must lie in"):
         b.evaluate(torch.tensor([1]), torch.zeros(1, 3))
+    with pytest.raises(ShapeError, match=r"facets \[k\] and points \[k, Q, 3\] must agree"):
+        b.evaluate_on(torch.tensor([0, 0]), torch.zeros(1, 4, 3))
+    with pytest.raises(ValueRangeError, match="facets must lie in"):
+        b.evaluate_on(torch.tensor([2]), torch.zeros(1, 4, 3))
+
+
+@pytest.mark.parametrize("degree", [0, 1, 2])
+def test_basis_on_points_grouped_by_facet_is_the_pointwise_basis(degree):
+    box = ti.scenes.cornell_box(light=False, dtype=F64)
+    b = facet_basis(box, degree)
+    facets = torch.tensor([3, 0, 7, 3])
+    gen = torch.Generator().manual_seed(0)
+    pts = b.centroids[facets][:, None] + 0.1 * torch.randn(4, 5, 3, dtype=F64, generator=gen)
+    psi = b.evaluate_on(facets, pts)
+    assert psi.shape == (4, 5, b.size)
+    ref = b.evaluate(facets.repeat_interleave(5), pts.reshape(-1, 3)).reshape(4, 5, -1)
+    torch.testing.assert_close(psi, ref, rtol=0, atol=1e-15)
 
 
 # ------------------------------------------------------------------------------------------- the inner integral
