@@ -11,11 +11,12 @@ from __future__ import annotations
 
 import threading
 from collections.abc import Iterator
-from contextlib import contextmanager
+from contextlib import AbstractContextManager, contextmanager, nullcontext
 
 import torch
 
-__all__ = ["SMALL_VECTOR_ELEMENTS", "compiled_work", "small_work_threads", "torch_threads", "work_threads"]
+__all__ = ["SMALL_VECTOR_ELEMENTS", "caller_threads", "compiled_work", "small_work_threads", "torch_threads",
+           "work_threads"]
 
 #: Iterations whose vectors hold at most this many elements run their vector operations on one thread (the products
 #: keep the caller's threads): waking torch's OpenMP workers for each of them cost more than the work. One CG
@@ -56,8 +57,10 @@ def torch_threads(n: int) -> Iterator[None]:
 
 
 def small_work_threads(device: torch.device, elements: int, limit: int) -> int:
-    """The caller's torch thread count when work of ``elements`` elements on ``device`` is small enough (at most
-    ``limit``, on the CPU, with more than one thread) for its element-wise operations to run on one thread; else 0.
+    """The caller's thread count (:func:`work_threads`: torch's, or the caller's inside :func:`compiled_work`) when
+    work of ``elements`` elements on ``device`` is small enough (at most ``limit``, on the CPU, with more than one
+    thread) for its element-wise operations to run on one thread; else 0. Work above the limit runs on
+    :func:`work_threads` (:func:`caller_threads`).
 
     Example:
         >>> import torch
@@ -65,8 +68,15 @@ def small_work_threads(device: torch.device, elements: int, limit: int) -> int:
         >>> small_work_threads(torch.device("cpu"), 10**9, 65536)
         0
     """
-    threads = torch.get_num_threads()
+    threads = work_threads()
     return threads if device.type == "cpu" and threads > 1 and elements <= limit else 0
+
+
+def caller_threads() -> AbstractContextManager[None]:
+    """Run the block on :func:`work_threads` torch threads: large dense work (a factorisation, a product of a big
+    matrix) inside :func:`compiled_work` keeps the caller's threads; outside one, nothing changes."""
+    n = work_threads()
+    return nullcontext() if n == torch.get_num_threads() else torch_threads(n)
 
 
 @contextmanager

@@ -138,3 +138,61 @@ def test_small_dense_solves_on_one_thread(two_threads: None, n: int, columns: in
     e_dense = solve(ff, r, e0, method="dense")
     assert seen and set(seen) == ({1} if n == 100 else {2}) and torch.get_num_threads() == 2
     torch.testing.assert_close(e_dense, solve(ff, r, e0, method="cg", tol=1e-13), rtol=1e-10, atol=0)
+
+
+@pytest.mark.parametrize(("n", "columns", "vectors", "products"), [(300, 4, {1}, {2}), (300, 400, {2}, {2})])
+def test_cg_inside_compiled_work_keeps_the_callers_threads(two_threads: None, n: int, columns: int,
+                                                           vectors: set[int], products: set[int],
+                                                           monkeypatch: pytest.MonkeyPatch) -> None:
+    """Inside ``compiled_work`` (torch's glue on one thread, as the quadratic planner runs) CG still takes the
+    caller's two threads where it did outside: the products always, the vector operations of large systems; small
+    systems' vector operations stay on one. Before, a CG solve in that block ran entirely on one thread."""
+    from torch_interreflect._threads import compiled_work
+    from torch_interreflect.solver.krylov import cg
+    from torch_interreflect.solver.plan import Stats
+
+    g = torch.Generator().manual_seed(4)
+    ff = random_reciprocal(n, scale=0.95, seed=5)
+    sym = ff.matrix * ff.areas.sqrt()[:, None] / ff.areas.sqrt()
+    seen: list[int] = []
+    vector: list[int] = []
+    real_vecdot = torch.linalg.vecdot
+    monkeypatch.setattr(torch.linalg, "vecdot", lambda *a, **k: vector.append(torch.get_num_threads())
+                        or real_vecdot(*a, **k))
+
+    def product(v: torch.Tensor) -> torch.Tensor:
+        seen.append(torch.get_num_threads())
+        return 0.5 * (sym + sym.mT) @ v
+
+    s = torch.full((n, columns), 0.8, dtype=F64)
+    rhs = torch.rand(n, columns, generator=g, dtype=F64)
+    with compiled_work():
+        assert torch.get_num_threads() == 1
+        w = cg(product, s, rhs, 1e-12, 500, Stats())
+        assert torch.get_num_threads() == 1
+    assert set(seen) == products and set(vector) == vectors and torch.get_num_threads() == 2
+    a = torch.eye(n, dtype=F64) - s[:, :1] * 0.5 * (sym + sym.mT) * s[:, :1].T
+    torch.testing.assert_close(a @ w[:, :1], rhs[:, :1], rtol=0, atol=1e-9)
+
+
+@pytest.mark.parametrize(("n", "threads"), [(200, 1), (600, 2)])
+def test_dense_inside_compiled_work_factors_large_systems_on_the_callers_threads(
+        two_threads: None, n: int, threads: int, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The dense method's factorisation inside ``compiled_work``: a small system on one thread (as outside), a large
+    one (600² entries, above ``SMALL_DENSE_ELEMENTS``) on the caller's two; the same answer as outside."""
+    from torch_interreflect._threads import compiled_work
+
+    ff = random_reciprocal(n, scale=0.9, seed=6)
+    r = torch.full((n,), 0.8, dtype=F64)
+    e0 = torch.rand(n, 1, generator=torch.Generator().manual_seed(7), dtype=F64)
+    seen: list[int] = []
+    real = torch.linalg.cholesky_ex
+    monkeypatch.setattr(torch.linalg, "cholesky_ex", lambda *a, **k: seen.append(torch.get_num_threads())
+                        or real(*a, **k))
+    outside = solve(ff, r, e0, method="dense")
+    assert seen == [threads]
+    seen.clear()
+    with compiled_work():
+        inside = solve(ff, r, e0, method="dense")
+    assert seen == [threads] and torch.get_num_threads() == 2
+    torch.testing.assert_close(inside, outside, rtol=1e-12, atol=0)

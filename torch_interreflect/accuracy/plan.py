@@ -14,6 +14,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
+from .._threads import compiled_work
 from ..camera.rendering import render_view
 from ..camera.sensor import Camera
 from ..camera.view import View
@@ -384,11 +385,12 @@ def _plan_quadratic(pb: Problem, light: Any, max_facets: int, max_iterations: in
     pb.quadrature_tol = moment_quadrature_tol(pb.accuracy)
     kw = {"max_unknowns": max_facets, "max_iterations": max_iterations, "show": show, "t_start": t_start,
           "contact_split": contact_split}
-    st = refine_moments(pb, halving=halving, **kw)
-    if st.rough is not None and bool(st.rough.any()):
-        # a rough light that the first test missed (a shadow edge between its 4 × 4 rays): the degrees' difference
-        # does not bound the error there
-        st = refine_moments(pb, halving=True, **kw)
+    with compiled_work():  # the planner's torch glue on one thread; loops, rays and big solves on the caller's
+        st = refine_moments(pb, halving=halving, **kw)
+        if st.rough is not None and bool(st.rough.any()):
+            # a rough light that the first test missed (a shadow edge between its 4 × 4 rays): the degrees'
+            # difference does not bound the error there
+            st = refine_moments(pb, halving=True, **kw)
     n = st.leaves.scene.num_facets
     # each apply picks dense or CG by the solver's cost model for its own reflectance columns (many variants of a
     # plan favour CG); CG always above DENSE_MAX_UNKNOWNS

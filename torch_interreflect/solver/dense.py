@@ -22,7 +22,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from .._threads import small_work_threads, torch_threads
+from .._threads import caller_threads, small_work_threads, torch_threads
 from ..errors import SingularSystemError
 from .plan import Stats
 
@@ -223,7 +223,7 @@ def dense_solve(
         ``x`` ``[c, N]`` and the kept factors (empty list when not kept).
     """
     small = small_work_threads(f.device, f.shape[0] ** 2 * max(int(r.shape[1]), 1), SMALL_DENSE_ELEMENTS)
-    with torch_threads(1) if small else nullcontext():
+    with torch_threads(1) if small else caller_threads():
         if f.layout != torch.strided:
             f = f.to_dense()
         if given is not None and given[0].numel():

@@ -8,7 +8,7 @@ from collections.abc import Callable
 import torch
 from torch import Tensor
 
-from .._threads import SMALL_VECTOR_ELEMENTS, small_work_threads, torch_threads
+from .._threads import SMALL_VECTOR_ELEMENTS, caller_threads, small_work_threads, torch_threads
 from ..errors import SingularSystemError
 from .plan import Stats
 
@@ -54,7 +54,13 @@ def operator_cg(
     threads = small_work_threads(b.device, b.numel(), SMALL_VECTOR_ELEMENTS)
     if threads:
         with torch_threads(1):
-            return operator_cg(_at_threads(apply_f, threads), areas, r, b, transpose, tol, max_iter, stats)
+            return _operator_cg(_at_threads(apply_f, threads), areas, r, b, transpose, tol, max_iter, stats)
+    with caller_threads():
+        return _operator_cg(apply_f, areas, r, b, transpose, tol, max_iter, stats)
+
+
+def _operator_cg(apply_f: Callable[[Tensor], Tensor], areas: Tensor, r: Tensor, b: Tensor, transpose: bool,
+                 tol: float | Tensor, max_iter: int, stats: Stats) -> Tensor:
     sa = areas.sqrt()[:, None]
 
     def g(v: Tensor) -> Tensor:
@@ -97,7 +103,8 @@ def cg(g: Tensor | Callable[[Tensor], Tensor], s: Tensor, rhs: Tensor, tol: floa
     gmul = g if callable(g) else g.__matmul__
     threads = small_work_threads(rhs.device, rhs.numel(), SMALL_VECTOR_ELEMENTS)
     if not threads:
-        return _cg(gmul, s, rhs, tol, max_iter, stats)
+        with caller_threads():
+            return _cg(gmul, s, rhs, tol, max_iter, stats)
     with torch_threads(1):
         return _cg(_at_threads(gmul, threads), s, rhs, tol, max_iter, stats)
 
