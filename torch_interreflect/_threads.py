@@ -74,7 +74,21 @@ def small_work_threads(device: torch.device, elements: int, limit: int) -> int:
 
 def caller_threads() -> AbstractContextManager[None]:
     """Run the block on :func:`work_threads` torch threads: large dense work (a factorisation, a product of a big
-    matrix) inside :func:`compiled_work` keeps the caller's threads; outside one, nothing changes."""
+    matrix, a copy of one) inside :func:`compiled_work` keeps the caller's threads; outside one, nothing changes.
+
+    Returns:
+        A context manager (restores torch's thread count on exit).
+
+    Example:
+        >>> import torch
+        >>> from torch_interreflect._threads import caller_threads, compiled_work
+        >>> before = torch.get_num_threads()
+        >>> with compiled_work():
+        ...     with caller_threads():
+        ...         inside = torch.get_num_threads()
+        >>> inside == before == torch.get_num_threads()
+        True
+    """
     n = work_threads()
     return nullcontext() if n == torch.get_num_threads() else torch_threads(n)
 

@@ -114,3 +114,23 @@ def test_cache_keys_on_the_source_object():
     cache.clear()
     cache.get(b, "k", lambda: calls.append("b") or b + 1)
     assert calls == ["a", "b", "b"]
+
+
+def test_writes_past_the_version_counter_need_clear_derived():
+    """``corners.data`` has a counter of its own: such a write is not seen until ``clear_derived``."""
+    sc = _scene()
+    before = sc.areas
+    sc.corners.data.mul_(2.0)
+    assert sc.areas is before  # documented: not seen
+    sc.clear_derived()
+    torch.testing.assert_close(sc.areas, 4.0 * before, rtol=1e-15, atol=0)
+
+
+def test_a_scene_with_kept_values_deep_copies():
+    import copy
+
+    sc = _scene()
+    RayCaster.of(sc)
+    dup = copy.deepcopy(sc)
+    torch.testing.assert_close(dup.normals, sc.normals, rtol=0, atol=0)
+    assert RayCaster.of(dup) is not RayCaster.of(sc) and dup.corners.data_ptr() != sc.corners.data_ptr()

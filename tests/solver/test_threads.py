@@ -196,3 +196,37 @@ def test_dense_inside_compiled_work_factors_large_systems_on_the_callers_threads
         inside = solve(ff, r, e0, method="dense")
     assert seen == [threads] and torch.get_num_threads() == 2
     torch.testing.assert_close(inside, outside, rtol=1e-12, atol=0)
+
+
+def test_operator_cg_inside_compiled_work_scales_on_one_thread(two_threads: None) -> None:
+    """Through ``operator_cg`` (the path of ``solve`` and ``solve_moments``) inside ``compiled_work``, a small system
+    keeps the area scaling around each product and the vector operations on one thread: every element-wise product
+    or quotient of the areas' descendants runs on one thread, only the matrix product on the caller's two."""
+    from torch_interreflect._threads import compiled_work
+    from torch_interreflect.solver.krylov import operator_cg
+    from torch_interreflect.solver.plan import Stats
+
+    seen: list[int] = []
+
+    class Spy(torch.Tensor):  # records the thread count of the element-wise products and quotients it meets
+        @classmethod
+        def __torch_function__(cls, func, types, args=(), kwargs=None):
+            if getattr(func, "__name__", "") in ("__mul__", "__rmul__", "__truediv__", "__rtruediv__", "mul", "div"):
+                seen.append(torch.get_num_threads())
+            return super().__torch_function__(func, types, args, kwargs or {})
+
+    n = 300
+    ff = random_reciprocal(n, scale=0.95, seed=8)
+    products: list[int] = []
+
+    def apply_f(v: torch.Tensor) -> torch.Tensor:
+        products.append(torch.get_num_threads())
+        return ff.matrix @ v.as_subclass(torch.Tensor)
+
+    b = torch.rand(n, 2, generator=torch.Generator().manual_seed(9), dtype=F64)
+    r = torch.full((n, 2), 0.8, dtype=F64)
+    with compiled_work():
+        x = operator_cg(apply_f, ff.areas.as_subclass(Spy), r, b, False, 1e-12, 500, Stats())
+    assert seen and set(seen) == {1} and set(products) == {2} and torch.get_num_threads() == 2
+    ref = solve(ff, r.T, b.T[..., None], method="dense")[..., 0].T
+    torch.testing.assert_close(x.as_subclass(torch.Tensor), ref, rtol=1e-9, atol=0)

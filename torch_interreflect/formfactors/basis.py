@@ -125,7 +125,7 @@ class FacetBasis:
             ``ψ_a`` at the points ``[k, Q, nb]`` (float64).
 
         Raises:
-            ShapeError: ``facets`` and ``points`` do not agree, or a facet index is out of range.
+            ShapeError: ``facets`` and ``points`` do not agree. ValueRangeError: a facet index is out of range.
 
         Shape:
             - facets: ``[k]``; points: ``[k, Q, 3]``; output: ``[k, Q, nb]``

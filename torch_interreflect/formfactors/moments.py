@@ -45,7 +45,7 @@ import torch
 from torch import Tensor
 
 from .._checks import check_count
-from .._threads import compiled_work
+from .._threads import caller_threads, compiled_work
 from ..errors import ValueRangeError
 from ..geometry._polygon import plane_eps
 from ..geometry.raycast import RayCaster
@@ -159,7 +159,8 @@ class MomentFormFactors:
         if degree == self.degree:
             return self
         F, nb = self.num_facets, self.size
-        m = self.matrix.reshape(F, nb, F, nb)[:, :nb_new, :, :nb_new].reshape(F * nb_new, F * nb_new).contiguous()
+        with caller_threads():  # a copy of most of the matrix: the caller's threads inside compiled_work too
+            m = self.matrix.reshape(F, nb, F, nb)[:, :nb_new, :, :nb_new].reshape(F * nb_new, F * nb_new).contiguous()
         b = self.basis
         basis = FacetBasis(degree, b.centroids, b.axes, b.scale, b.transform[:, :nb_new, :nb_new].contiguous())
         info = {k: v for k, v in self.info.items() if k not in _SUMS}
@@ -457,7 +458,8 @@ def _assemble(kern: Any, sc: Scene, setup: dict[str, Any], basis: FacetBasis, ac
         G = np.zeros((F * nb, F * nb))
         sel = slice(None)
     else:
-        G = base.detach().to("cpu", torch.float64, copy=True).numpy()
+        with caller_threads():  # the whole matrix copied: on the caller's threads inside compiled_work too
+            G = base.detach().to("cpu", torch.float64, copy=True).numpy()
         sel = setup["need"].numpy()
     if acc.shape[0]:
         launch(kern.scatter_blocks, np.ascontiguousarray(setup["pairs"][0][sel]),

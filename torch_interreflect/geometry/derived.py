@@ -4,13 +4,17 @@ are unchanged.
 A render reads the same derived quantities many times: on the 56-piece Cornell box the moments, the sky's rays and
 the solve computed the centroids 10 times, the normals 9 times and built Embree's scene twice per call.
 :class:`DerivedCache` keeps each value beside the tensor it came from and hands it out again while that tensor is
-the same object at the same version (:attr:`torch.Tensor._version` counts in-place writes, so an optimiser's step on
-the corners, or ``corners.data.add_(…)``, is seen). Nothing is kept where a stale or shared value could change a
-result:
+the same object at the same version (:attr:`torch.Tensor._version` counts in-place writes through the tensor and its
+views: ``corners[...] *= 2`` or ``corners.add_(…)`` under :func:`torch.no_grad` is seen). Nothing is kept where a
+stale or shared value could change a result:
 
-- corners that require grad (each read builds its own graph, as autograd needs);
+- corners that require grad (each read builds its own graph, as autograd needs; an optimiser's parameters);
 - inference tensors, or inside :func:`torch.inference_mode` (such a value could not be saved for backward later);
 - a kept tensor that was itself written in place since (its version is checked on every hit).
+
+Writes that bypass the version counter are not seen: through ``corners.data`` (a new counter) or through a numpy view
+of the corners (``corners.numpy()``). After such a write, :meth:`DerivedCache.clear` (``Scene.clear_derived``)
+forgets the kept values. Kept tensors are shared by every reader: treat them as read-only.
 """
 
 from __future__ import annotations
@@ -63,7 +67,16 @@ class DerivedCache:
         self._entries: dict[Hashable, tuple[Tensor, int, Any, int | None]] = {}
 
     def get(self, source: Tensor, key: Hashable, make: Callable[[], T]) -> T:
-        """``make()``, or the value it gave before for ``key`` while ``source`` is unchanged (module docstring)."""
+        """``make()``, or the value it gave before for ``key`` while ``source`` is unchanged (module docstring).
+
+        Args:
+            source: The tensor the value is derived from.
+            key: Which value (one per key and source).
+            make: Computes the value.
+
+        Returns:
+            The value (the kept one, or ``make()``'s).
+        """
         if not cacheable(source):
             return make()
         version = source._version

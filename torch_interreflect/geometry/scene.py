@@ -8,7 +8,7 @@ side; the normal follows the right-hand rule.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Hashable, Sequence
 from typing import Any, Literal
 
 import numpy as np
@@ -294,18 +294,20 @@ class Scene:
     def device(self) -> torch.device:
         return self._corners.device
 
-    def derived(self, key: Any, make: Any) -> Any:
+    def derived(self, key: Hashable, make: Callable[[], Any]) -> Any:
         """``make()``, computed once while the corners are unchanged (:mod:`.derived`; never where they require
-        grad): the areas, normals, centroids and diameters below, and :meth:`.raycast.RayCaster.of`."""
+        grad; shared: read-only): the areas, normals, centroids and diameters below, :meth:`.raycast.RayCaster.of`."""
         cache = self.__dict__.get("_derived")
         if cache is None:
             cache = self.__dict__["_derived"] = DerivedCache()
         return cache.get(self._corners, key, make)
 
-    def __getstate__(self) -> dict[str, Any]:
-        state = self.__dict__.copy()
-        state.pop("_derived", None)  # a ray caster does not pickle; the values are made again
-        return state
+    def clear_derived(self) -> None:
+        """Forget the kept values: after writing the corners past their version counter (``.data``, numpy)."""
+        self.__dict__.pop("_derived", None)
+
+    def __getstate__(self) -> dict[str, Any]:  # the kept values (a ray caster does not pickle) are made again
+        return {k: v for k, v in self.__dict__.items() if k != "_derived"}
 
     @property
     def areas(self) -> Tensor:
@@ -338,8 +340,8 @@ class Scene:
         return Scene.from_parts(c, self._is_triangle.to(dev), mat, self.material_names)
 
     def detach(self) -> Scene:
-        """The same facets with corners detached from autograd (ray casting, caches); the scene itself when its
-        corners do not require grad."""
+        """The same facets with corners detached from autograd (ray casting, caches); the scene itself (the same
+        corners tensor) when they do not require grad."""
         if not self._corners.requires_grad:
             return self
         return Scene.from_parts(self._corners.detach(), self._is_triangle, self._material, self.material_names)
@@ -349,10 +351,8 @@ class Scene:
 
     def __repr__(self) -> str:
         nt = int(self._is_triangle.sum())
-        return (
-            f"Scene(num_facets={self.num_facets}, quads={self.num_facets - nt}, triangles={nt}, "
-            f"dtype={self.dtype}, device={self.device})"
-        )
+        return (f"Scene(num_facets={self.num_facets}, quads={self.num_facets - nt}, triangles={nt}, "
+                f"dtype={self.dtype}, device={self.device})")
 
     # ------------------------------------------------------------------ operations
     def subdivide(self, k: int) -> tuple[Scene, Tensor]:

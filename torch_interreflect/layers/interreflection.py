@@ -173,7 +173,7 @@ class Interreflection(nn.Module):
             warnings.simplefilter("ignore", UserWarning)  # sparse CSR beta warning
             # form factors of a scene whose corners require grad keep their graph (gradients to the geometry)
             self.register_buffer("matrix", ff.matrix if ff.matrix.requires_grad else ff.matrix.detach())
-        self.register_buffer("areas", ff.areas.detach())
+        self.register_buffer("areas", ff.areas.detach().clone())  # its own: load_state_dict writes it in place
         if refined is not None:
             self.register_buffer("light_factor", refined.light_factor.detach())
             self.register_buffer("leaf_user", refined.leaf_user.detach().to(ff.device))

@@ -52,15 +52,15 @@ def operator_cg(
     run everything but ``apply_f`` on one thread (the scaling around the product included).
     """
     threads = small_work_threads(b.device, b.numel(), SMALL_VECTOR_ELEMENTS)
-    if threads:
+    if threads:  # the threads are settled here: the iteration itself (_cg) must not wrap the scaling again
         with torch_threads(1):
-            return _operator_cg(_at_threads(apply_f, threads), areas, r, b, transpose, tol, max_iter, stats)
+            return _operator_cg(_at_threads(apply_f, threads), areas, r, b, transpose, tol, max_iter, stats, _cg)
     with caller_threads():
-        return _operator_cg(apply_f, areas, r, b, transpose, tol, max_iter, stats)
+        return _operator_cg(apply_f, areas, r, b, transpose, tol, max_iter, stats, _cg)
 
 
 def _operator_cg(apply_f: Callable[[Tensor], Tensor], areas: Tensor, r: Tensor, b: Tensor, transpose: bool,
-                 tol: float | Tensor, max_iter: int, stats: Stats) -> Tensor:
+                 tol: float | Tensor, max_iter: int, stats: Stats, cg: Callable[..., Tensor]) -> Tensor:
     sa = areas.sqrt()[:, None]
 
     def g(v: Tensor) -> Tensor:
