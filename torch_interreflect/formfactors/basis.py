@@ -135,12 +135,9 @@ class FacetBasis:
         if pts.ndim != 3 or pts.shape[-1] != 3 or idx.shape != (pts.shape[0],):
             raise ShapeError(f"facets [k] and points [k, Q, 3] must agree; got {list(idx.shape)} and "
                              f"{list(pts.shape)}")
-        d = pts.to(torch.float64) - self.centroids[idx][:, None]
-        inv = (1.0 / self.scale[idx])[:, None]
-        ax = self.axes[idx]
-        p = (d * ax[:, None, 0]).sum(-1) * inv
-        q = (d * ax[:, None, 1]).sum(-1) * inv
-        return torch.bmm(_monomials(p, q, self.degree), self.transform[idx].mT)
+        k, Q = pts.shape[:2]
+        p, q = self.coordinates(idx.repeat_interleave(Q), pts.reshape(-1, 3))
+        return torch.bmm(_monomials(p.reshape(k, Q), q.reshape(k, Q), self.degree), self.transform[idx].mT)
 
 
 def facet_rule(corners: Tensor, n: int) -> tuple[Tensor, Tensor]:

@@ -37,7 +37,6 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass, field
-from functools import cache
 from typing import Any, Literal
 
 import numpy as np
@@ -56,7 +55,7 @@ from .moment_reuse import reuse_map, reused_sums
 from .operator import FormFactors
 from .pair_contacts import CUT_MIN, RuleTable, contacts
 from .pairs import classify_pairs, corner_edge_contacts, facing_pairs, order_pairs
-from .rules import order_for
+from .rules import gauss_legendre, order_for
 from .visibility import blocker_candidates
 
 __all__ = ["RHO_FAR", "MomentFormFactors", "mean_moments", "moment_form_factors", "resample_visibility"]
@@ -234,17 +233,10 @@ def _pairs(sc: Scene, degree: int, tol: float, eps: float, occlusion: Literal["a
     return {"dom": dom, "tgt": tgt, "need": need, "need_rank": np.cumsum(need.numpy()) - 1,
             "exact": np.zeros((int(need.sum()), nb, nb)), "pairs": pairs, "fine": (touch | clip_d).numpy(),
             "rules": (off, ru, rv, rw, edge_rule, vertex_rule), "buf": buf,
-            "angular": (*_leggauss(n_reg), *_leggauss(n_fine),
+            "angular": (*gauss_legendre(n_reg), *gauss_legendre(n_fine),
                         angular_panel(tol)),
             "corners": sc.corners.contiguous().numpy(), "normals": sc.normals.contiguous().numpy(),
             "triangle": sc.is_triangle.cpu().numpy().astype(np.bool_), "scene": sc}
-
-
-@cache
-def _leggauss(n: int) -> tuple[np.ndarray, np.ndarray]:
-    """Gauss-Legendre nodes and weights on [-1, 1], shared between calls (the compiled loops only read them; numba
-    would compile again for read-only arrays)."""
-    return np.polynomial.legendre.leggauss(n)
 
 
 def _cast(kern: Any, setup: dict[str, Any], sel: np.ndarray, ns: int, seed: int) -> tuple[np.ndarray, np.ndarray]:

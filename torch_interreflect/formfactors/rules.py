@@ -9,14 +9,21 @@ import numpy as np
 import torch
 from torch import Tensor
 
-__all__ = ["GRADE_Q", "default_adjacent_order", "gauss_legendre01", "order_for", "quadrature_rule"]
+__all__ = ["GRADE_Q", "default_adjacent_order", "gauss_legendre", "gauss_legendre01", "order_for", "quadrature_rule"]
 
+
+
+@cache
+def gauss_legendre(n: int) -> tuple[np.ndarray, np.ndarray]:
+    """Gauss-Legendre nodes and weights ``[n]`` on [-1, 1], computed once per ``n`` and shared (read them only; the
+    compiled loops take them as they are: numba would compile again for read-only arrays)."""
+    return np.polynomial.legendre.leggauss(n)
 
 
 @cache
 def _gauss01(n: int) -> tuple[np.ndarray, np.ndarray]:
     """Gauss-Legendre nodes and weights on [0, 1]."""
-    x, w = np.polynomial.legendre.leggauss(n)
+    x, w = gauss_legendre(n)
     return 0.5 * (x + 1.0), 0.5 * w
 
 
