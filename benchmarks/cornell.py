@@ -12,7 +12,9 @@ or *weighed* (``sky_estimates`` and ``solve_moments_sky``: its two estimates wei
 time includes both). The quadratic basis also runs on the split box cut to a size instead
 (:func:`~torch_interreflect.geometry.subdivide_to`: the walls cut finer than the blocks' faces) at
 :data:`SIZED_SETTINGS` (there also tol 1e-2 with 2 × 2 visibility rays, and the linear basis, degree 1; and on the
-finest, :data:`DENSE_SKY_SETTINGS`: the sky's rays from 16² points per piece); the
+finest, :data:`DENSE_SKY_SETTINGS`: the sky's rays from 16² points per piece). The variants' batched solve is
+also timed in float32 on the float64 kernel (what a float32 generator or training loop runs) and kept where it is
+faster and within :data:`F32_AGREE` of the float64 solve; the rows' errors are the float64 solve's. The
 polynomial rows draw their rays with :data:`SEEDS` and report the RMS error over the draws, as Mitsuba's rows do
 over theirs. At a requested error, the cheapest of all our rows that reaches it is taken (as Mitsuba's cheapest
 sample count is). *Mitsuba*: the batched
@@ -26,7 +28,9 @@ Usage: ``python -m benchmarks.cornell [--quick]`` (needs the bench extra) → ``
 
 from __future__ import annotations
 
+import math
 import os
+import warnings
 
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # before torch loads: see speed_vs_error.py
 
@@ -48,6 +52,9 @@ from .speed_vs_error import time_at_error
 
 RESULTS = Path(__file__).resolve().parent / "results"
 VARIANTS = 100
+#: Largest deviation (relative to the largest value) of the variants' float32 solve from the float64 one that the
+#: rows accept (measured: 3.7e-7 on the box cut to 0.5 m, linear basis).
+F32_AGREE = 1e-5
 #: (quadrature tol, sky directions per axis, weighed, degree, visibility rays per side) of the polynomial rows on a
 #: uniform subdivision; *weighed*: the sky's two estimates of its open part weighed per facet (``sky_estimates`` and
 #: ``solve_moments_sky``), else the escaping rays' count (``light_moments``)
@@ -57,7 +64,8 @@ QUADRATIC_SETTINGS = ((1e-5, 16, False, 2, 3), (1e-4, 16, False, 2, 3), (1e-5, 8
 #: linear basis (degree 1: a third of the unknowns)
 SIZED_SETTINGS = ((1e-4, 16, False, 2, 3), (1e-4, 8, False, 2, 3), (1e-3, 8, False, 2, 3), (1e-4, 16, True, 2, 3),
                   (1e-4, 8, True, 2, 3), (1e-3, 8, True, 2, 3), (1e-3, 4, True, 2, 3), (1e-2, 8, False, 2, 2),
-                  (1e-2, 4, True, 2, 2), (1e-2, 8, True, 1, 2), (1e-2, 4, True, 1, 2))
+                  (1e-2, 4, True, 2, 2), (1e-2, 8, True, 1, 2), (1e-2, 4, True, 1, 2), (1e-2, 4, True, 1, 2, 4),
+                  (1e-2, 4, True, 2, 2, 4))
 #: The same with a denser sky (16² points per piece, the 6th entry; 8² elsewhere) on the finest subdivisions
 #: (:data:`DENSE_SKY_SIZES`): where r = 0.2 meets 0.1 %, the escaping rays' count is most of the error (at 0.1 m,
 #: tol 1e-4: 0.144 % with 16² directions from 8² points, 0.105 % from 16² points, 0.093 % with 32² directions).
@@ -147,13 +155,25 @@ def ours_quadratic(name: str, ks: list[int], sizes: list[float]) -> list[dict]:
 
             def solve(K, refl, e0, weighed=weighed):
                 if weighed:  # e0: the two estimates
-                    return solve_moments_sky(K, refl, *e0, torch.tensor([radiance], dtype=torch.float64))
+                    return solve_moments_sky(K, refl, *e0, torch.tensor([radiance], dtype=refl.dtype))
                 return solve_moments(K, refl, e0)
 
             (K, e0), t_kernel = timed(kernel, budget=20.0, reps=2)
             refl = grey[:, fine.material][..., None]  # [V, F, 1]
             c1, t_one = timed(lambda K=K, refl=refl, e0=e0: solve(K, refl[0], e0), reps=3)
             c_all, t_all = timed(lambda K=K, refl=refl, e0=e0: solve(K, refl, e0), budget=20.0, reps=2)
+            # the variants' batched solve again in float32 (the kernel stays float64): what a float32 data
+            # generator or training loop does; kept when it is faster and agrees with the float64 solve
+            K32, refl32, e32 = K.to(torch.float32), refl.to(torch.float32), _to32(e0)
+            with warnings.catch_warnings():
+                warnings.simplefilter("error")  # a float32 solve that warns (an iterative one short of its tol)
+                try:
+                    c32, t32 = timed(lambda K=K32, refl=refl32, e0=e32: solve(K, refl, e0), budget=20.0,
+                                     reps=2)
+                    dev = float((c32.double() - c_all).abs().amax() / c_all.abs().amax())
+                except Warning:
+                    t32, dev = math.inf, math.nan
+            f32 = t32 < t_all and dev < F32_AGREE  # nan compares False
             ec = area_average(facet_averages(c1), top, fine.areas, scene.num_facets).numpy().reshape(-1)
             ev = area_average(facet_averages(c_all[0]), top, fine.areas, scene.num_facets).numpy().reshape(-1)
             assert np.allclose(ec, ev, rtol=1e-6)  # the batched solve's first variant is the single solve
@@ -169,9 +189,15 @@ def ours_quadratic(name: str, ks: list[int], sizes: list[float]) -> list[dict]:
             rows.append({"scene": name, "who": "ours", "setting": f"{label}, {basis}, tol {tol:g}, sky {sky}²{how}",
                          "facets": fine.num_facets, "error": float(np.sqrt(np.mean(np.square(errs)))),
                          "error_max": float(max(errs)), "one": t_kernel + t_one,
-                         "kernel": t_kernel, "solve": t_one, "variants": t_kernel + t_all})
+                         "kernel": t_kernel, "solve": t_one, "variants": t_kernel + (t32 if f32 else t_all),
+                         "variants_float32": f32, "float32_deviation": dev})
             print(rows[-1], flush=True)
     return rows
+
+
+def _to32(e0):
+    """The light of a quadratic row (one tensor, or the weighed sky's pair of estimates) in float32."""
+    return tuple(x.to(torch.float32) for x in e0) if isinstance(e0, tuple) else e0.to(torch.float32)
 
 
 def mitsuba(name: str, spps: list[int]) -> list[dict]:
@@ -222,9 +248,11 @@ def at_requests(rows: list[dict]) -> list[str]:
                 continue
             one = min(ok, key=lambda w: w["one"])
             var = min(ok, key=lambda w: w["variants"])
+            var_how = " (float32 solves)" if var.get("variants_float32") else ""
+            var_label = var_how if var is one else f" ({var['setting']}{var_how})"
             m1, m2 = at_error(mits, req, "one"), at_error(mits, req, "variants")
             lines.append(f"| {scene} | {100 * req:g} % | {one['one']:.3f} s ({one['setting']}) | {m1:.3f} s | "
-                         f"{m1 / one['one']:.2f}× | {var['variants']:.2f} s | {m2:.2f} s | "
+                         f"{m1 / one['one']:.2f}× | {var['variants']:.3f} s{var_label} | {m2:.2f} s | "
                          f"{m2 / var['variants']:.1f}× |")
     return lines
 
@@ -237,7 +265,8 @@ def write(path: Path, rows: list[dict]) -> None:
         "facets against the converged references; where rays are drawn at random (our quadratic rows, Mitsuba) the",
         f"RMS over {len(SEEDS)} draws (seeds), *worst draw* the largest of them (the constant basis casts the same",
         "rays every time). *one*: kernel + light + one solve (ours), one render (Mitsuba);",
-        f"*{VARIANTS} variants*: kernel + light + one batched solve of {VARIANTS} reflectance draws (ours),",
+        f"*{VARIANTS} variants*: kernel + light + one batched solve of {VARIANTS} reflectance draws (ours; `(f32)`:",
+        "that solve in float32 on the float64 kernel, where it was faster and within 1e-5 of the float64 solve),",
         f"{VARIANTS} renders (Mitsuba, multijitter sampler). Ours on the constant basis, or on the quadratic one",
         "(`quadratic`: degree-2 moments, 3 × 3 visibility rays unless a row says `2² rays`, at quadrature tol 1e-5 or",
         "1e-4 and 16² or 8² sky directions from 8² points per piece unless a row says otherwise) on the box split at",
@@ -261,8 +290,10 @@ def write(path: Path, rows: list[dict]) -> None:
         else:
             extra = "– | – | – | –"
         worst = f"{100 * w['error_max']:.2f} %" if "error_max" in w else "–"
+        f32 = " (f32)" if w.get("variants_float32") else ""
         lines.append(f"| {w['scene']} | {w['who']} | {w['setting']} | {w['facets']} | {100 * w['error']:.2f} % | "
-                     f"{worst} | {w['one']:.3f} s | {w['variants']:.2f} s | {extra} |")
+                     f"{worst} | {w['one']:.3f} s | {w['variants']:.3f} s{f32}"
+                     f" | {extra} |")
     lines += at_requests(rows)
     lines += ["", "Ratio > 1: ours is faster (Mitsuba's time / ours)."]
     path.write_text("\n".join(lines) + "\n")
@@ -281,7 +312,7 @@ def main(argv: list[str] | None = None) -> None:
     torch.set_default_dtype(torch.float64)
     ks = [2, 4] if args.quick else [2, 4, 6, 8]
     kq = [1, 2] if args.quick else [1, 2, 3, 4]
-    sizes = [0.4, 0.2] if args.quick else [0.6, 0.4, 0.3, 0.2, 0.15, 0.1]
+    sizes = [0.4, 0.2] if args.quick else [0.6, 0.5, 0.4, 0.3, 0.2, 0.15, 0.1]
     spps = [256, 1024, 4096, 16384] if args.quick else [256, 1024, 4096, 16384, 65536, 262144]
     rows = []
     for name in ("cornell_sky_r9", "cornell_sky_r2"):
