@@ -368,3 +368,49 @@ def scatter_blocks(dom, tgt, acc, transform, areas, out):
                     s += tmp[a, d] * transform[j, b, d]
                 out[i * nb + a, j * nb + b] = s * ai
                 out[j * nb + b, i * nb + a] = s * aj
+
+
+@njit(cache=True, inline="always")
+def _pair_key(p, dom, tgt, kind, rule, shift, fine, corners, triangle, quantum, k):
+    """The key of pair ``p`` in ``k [30]`` (int64): its two facets' corners relative to the domain's first corner in
+    steps of ``quantum`` (m), then its kind, rule, rotation, angular rule and the facets' triangle flags. Everything
+    the loops compute from a pair but its position: the frames, normals and outer points follow from the corners."""
+    i, j = dom[p], tgt[p]
+    n = 0
+    for s in range(2):
+        f = i if s == 0 else j
+        for c in range(4):
+            for x in range(3):
+                k[n] = np.int64(round((corners[f, c, x] - corners[i, 0, x]) / quantum))
+                n += 1
+    k[24], k[25], k[26], k[27] = kind[p], rule[p], shift[p], fine[p]
+    k[28], k[29] = triangle[i], triangle[j]
+
+
+@njit(cache=True, parallel=True)
+def pair_hashes(todo, dom, tgt, kind, rule, shift, fine, corners, triangle, quantum, out):
+    """``out[t]``: a 64-bit hash of the key of pair ``todo[t]`` (:func:`_pair_key`); pairs that are translated copies
+    of one another (to within ``quantum``) hash alike."""
+    for t in prange(todo.shape[0]):
+        k = np.empty(30, dtype=np.int64)
+        _pair_key(todo[t], dom, tgt, kind, rule, shift, fine, corners, triangle, quantum, k)
+        h = np.uint64(0x84222325CBF29CE4)
+        for n in range(30):
+            h = _mix(h ^ (np.uint64(k[n] & 0x7FFFFFFFFFFFFFFF) + np.uint64(n) * np.uint64(0x9E3779B97F4A7C15)))
+        out[t] = h
+
+
+@njit(cache=True, parallel=True)
+def same_pairs(todo, rep, dom, tgt, kind, rule, shift, fine, corners, triangle, quantum, out):
+    """``out[t]``: pair ``todo[t]`` has the key of pair ``rep[t]`` (a hash match that is a real copy)."""
+    for t in prange(todo.shape[0]):
+        a = np.empty(30, dtype=np.int64)
+        b = np.empty(30, dtype=np.int64)
+        _pair_key(todo[t], dom, tgt, kind, rule, shift, fine, corners, triangle, quantum, a)
+        _pair_key(rep[t], dom, tgt, kind, rule, shift, fine, corners, triangle, quantum, b)
+        same = True
+        for n in range(30):
+            if a[n] != b[n]:
+                same = False
+                break
+        out[t] = same

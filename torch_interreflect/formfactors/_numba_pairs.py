@@ -264,11 +264,11 @@ def gauss_order(rho, digits):
 
 
 @njit(cache=True, parallel=True)
-def order_pairs(areas, iu, ju, dom, tgt):
-    """Each pair ``(iu, ju)`` as ``(dom, tgt)`` with the smaller facet (the integration domain) first; ties keep
-    ``iu`` first."""
+def order_pairs(areas, iu, ju, tie, dom, tgt):
+    """Each pair ``(iu, ju)`` as ``(dom, tgt)`` with the smaller facet (the integration domain) first; ties (areas
+    within ``tie`` of one another, relative) keep ``iu`` first."""
     for p in prange(iu.shape[0]):
-        if areas[iu[p]] > areas[ju[p]]:
+        if areas[iu[p]] > areas[ju[p]] * (1.0 + tie):
             dom[p] = ju[p]
             tgt[p] = iu[p]
         else:

@@ -51,10 +51,11 @@ from ..geometry.raycast import RayCaster
 from ..geometry.scene import Scene
 from .basis import FacetBasis, basis_size, facet_basis
 from .compiled import dealt, launch, loops
+from .moment_copies import translated_copies
 from .moment_reuse import reuse_map, reused_sums
 from .operator import FormFactors
 from .pair_contacts import CUT_MIN, RuleTable, contacts
-from .pairs import classify_pairs, corner_edge_contacts, facing_pairs, order_pairs
+from .pairs import classify_pairs, copy_tie, corner_edge_contacts, facing_pairs, order_pairs
 from .rules import gauss_legendre, order_for
 from .visibility import blocker_candidates
 
@@ -185,7 +186,8 @@ def _kernel() -> Any:
     return kern
 
 
-def _pairs(sc: Scene, degree: int, tol: float, eps: float, occlusion: Literal["auto"] | bool) -> dict[str, Any]:
+def _pairs(sc: Scene, degree: int, tol: float, eps: float, occlusion: Literal["auto"] | bool,
+           tie: float = 1e-12) -> dict[str, Any]:
     """The pairs of the moments, each unordered pair once with its domain (the smaller facet, or the one of the
     shorter edge where two edges touch along a line: :func:`~.pairs.corner_edge_contacts`,
     :func:`.pair_contacts.contacts`), its kind (0 exact inner, 1 product Gauss, 2 clipped
@@ -194,7 +196,7 @@ def _pairs(sc: Scene, degree: int, tol: float, eps: float, occlusion: Literal["a
     drawn again alone."""
     kern = _kernel()
     iu, ju = facing_pairs(sc, eps, ("dense", 8))
-    dom, tgt = order_pairs(sc.areas, iu, ju)
+    dom, tgt = order_pairs(sc.areas, iu, ju, tie)
     cls = classify_pairs(sc, dom, tgt, tol, None, eps)
     dom, tgt, cls = corner_edge_contacts(sc, dom, tgt, cls)
     radius = (sc.corners - sc.centroids[:, None, :]).norm(dim=-1).amax(1)
@@ -236,7 +238,7 @@ def _pairs(sc: Scene, degree: int, tol: float, eps: float, occlusion: Literal["a
             "angular": (*gauss_legendre(n_reg), *gauss_legendre(n_fine),
                         angular_panel(tol)),
             "corners": sc.corners.contiguous().numpy(), "normals": sc.normals.contiguous().numpy(),
-            "triangle": sc.is_triangle.cpu().numpy().astype(np.bool_), "scene": sc}
+            "triangle": sc.is_triangle.cpu().numpy().astype(np.bool_), "scene": sc, "tie": tie}
 
 
 def _cast(kern: Any, setup: dict[str, Any], sel: np.ndarray, ns: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
@@ -296,12 +298,14 @@ def moment_form_factors(
             from ``previous`` (with its rays) when it needs rays there as here; only the other pairs are integrated.
             The other facets must refine ``previous``'s other facets (checked by their area and bounding box).
             Without occlusion, and with the kept facets in their previous order (as ``split`` keeps them), the
-            result is the same, bit for bit, as without ``reuse`` (in another order, to rounding).
+            result is the same as without ``reuse``: bit for bit where no pair is a translated copy of another (in
+            another order, or with copies, to rounding).
 
     Returns:
         :class:`MomentFormFactors` with ``info``: ``pairs``, ``near``/``far``/``clipped`` counts, ``occluded_pairs``,
         ``occluded_facets [F]`` (facets with a ray-cast pair), ``rays``, ``seconds``, ``quadrature_tol``,
-        ``reused_pairs`` (pairs taken from ``reuse``) and ``settings``.
+        ``reused_pairs`` (pairs taken from ``reuse``), ``copied_pairs`` (pairs that took the sums of a translated
+        copy, :func:`.moment_copies.translated_copies`) and ``settings``.
 
     Raises:
         ValueRangeError: a bad ``degree``, ``quadrature_tol`` or ``visibility_samples``.
@@ -333,13 +337,13 @@ def moment_form_factors(
         settings = {"degree": int(degree), "quadrature_tol": float(quadrature_tol), "occlusion": occlusion,
                     "visibility_samples": int(visibility_samples)}
         old_of = None if reuse is None else reuse_map(sc, reuse, settings)
-        setup = _pairs(sc, degree, quadrature_tol, plane_eps(scene), occlusion)
+        setup = _pairs(sc, degree, quadrature_tol, plane_eps(scene), occlusion, copy_tie(scene.dtype))
         basis = facet_basis(sc, degree)
         acc = np.zeros((setup["dom"].numel(), nb, nb))
         todo = np.arange(acc.shape[0], dtype=np.int64)
         if reuse is not None and old_of is not None:
             todo = reused_sums(setup, reuse[0].info["_sums"][1:], old_of, acc)
-        total = _pair_sums(kern, setup, basis, todo, int(visibility_samples), int(seed), acc)
+        total, copied = _pair_sums(kern, setup, basis, todo, int(visibility_samples), int(seed), acc)
         G = _assemble(kern, sc, setup, basis, acc)
     dom, tgt, need = setup["dom"], setup["tgt"], setup["need"]
     kind = torch.from_numpy(setup["pairs"][2])
@@ -351,7 +355,8 @@ def moment_form_factors(
         "method": "moments", "degree": int(degree), "quadrature_tol": float(quadrature_tol), "pairs": int(dom.numel()),
         "far": int((kind == 1).sum()), "clipped": int((kind == 2).sum()), "occluded_pairs": int(need.sum()),
         "occluded_facets": occ_facets, "rays": total, "visibility_samples": int(visibility_samples),
-        "seconds": time.perf_counter() - t_start, "reused_pairs": int(acc.shape[0] - todo.size), "settings": settings,
+        "seconds": time.perf_counter() - t_start, "reused_pairs": int(acc.shape[0] - todo.size),
+        "copied_pairs": copied, "settings": settings,
         "_sums": (sc, setup, acc),  # for resample_visibility and reuse: the pairs and their sums
     }
     return MomentFormFactors(matrix, scene.areas.detach().to(scene.dtype), basis, info)
@@ -415,24 +420,42 @@ def mean_moments(a: MomentFormFactors, b: MomentFormFactors) -> MomentFormFactor
 
 
 def _pair_sums(kern: Any, setup: dict[str, Any], basis: FacetBasis, todo: np.ndarray, ns: int, seed: int,
-               acc: np.ndarray) -> int:
+               acc: np.ndarray) -> tuple[int, int]:
     """Fill ``acc[todo]`` with the pairs' monomial sums (rays cast for the occluded ones among them, whose exact
-    unoccluded sums go to ``setup["exact"]``); the ray count. The pairs are dealt to the threads (:func:`dealt`)."""
+    unoccluded sums go to ``setup["exact"]``); the ray count and the number of copied pairs. One pair of each class
+    of translated copies is integrated (:func:`.moment_copies.translated_copies`), dealt to the threads
+    (:func:`dealt`); the others take its exact sums, less their own blocked part where they are occluded."""
     need = setup["need"].numpy()
-    todo = dealt(todo)
-    sel = todo[need[todo]]
+    rep = translated_copies(kern, setup, todo)
+    own = dealt(todo[rep == todo])
+    sel = dealt(todo)[need[dealt(todo)]]
     sel_of = np.full(setup["dom"].numel(), -1, dtype=np.int64)
     sel_of[sel] = np.arange(sel.size)
     ray_start, blocked = _cast(kern, setup, sel, ns, seed)
     tri = setup["triangle"]
     exact = np.zeros((max(1, sel.size), basis.size, basis.size))
-    if todo.size:
-        launch(kern.pair_moments, todo, *setup["pairs"], setup["fine"], *setup["rules"], setup["corners"],
-               setup["normals"], *_frames(basis), tri, int(basis.degree), *setup["angular"], setup["buf"], sel_of,
+    frames = _frames(basis)
+    if own.size:
+        launch(kern.pair_moments, own, *setup["pairs"], setup["fine"], *setup["rules"], setup["corners"],
+               setup["normals"], *frames, tri, int(basis.degree), *setup["angular"], setup["buf"], sel_of,
                ray_start, blocked, ns, seed, acc, exact)
+    copies = todo[rep != todo]
+    if copies.size:
+        src = rep[rep != todo]
+        occluded_src = sel_of[src] >= 0  # an occluded class's exact sums are in `exact`, not in `acc`
+        acc[copies] = acc[src]
+        acc[copies[occluded_src]] = exact[sel_of[src[occluded_src]]]
+        hit = copies[need[copies]]
+        if hit.size:
+            exact[sel_of[hit]] = acc[hit]
+            part = np.zeros((hit.size, basis.size, basis.size))
+            launch(kern.blocked_moments, hit, ray_start[sel_of[hit]], *setup["pairs"], *setup["rules"],
+                   setup["corners"], setup["normals"], *frames, tri, int(basis.degree), setup["buf"], blocked, ns,
+                   seed, part)
+            acc[hit] = acc[hit] - part
     if sel.size:
         setup["exact"][setup["need_rank"][sel]] = exact[:sel.size]
-    return int(blocked.size)
+    return int(blocked.size), int(copies.size)
 
 
 def _frames(basis: FacetBasis) -> tuple[np.ndarray, ...]:

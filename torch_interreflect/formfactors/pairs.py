@@ -23,8 +23,8 @@ from .memory import check_memory, dense_kernel_bytes
 from .pair_contacts import CUT_MIN, shared_segments
 from .rules import default_adjacent_order, order_for
 
-__all__ = ["SPARSE_DENSITY", "PairClasses", "classify_pairs", "corner_edge_contacts", "facing_pairs", "order_pairs",
-           "rule_groups"]
+__all__ = ["SPARSE_DENSITY", "PairClasses", "classify_pairs", "copy_tie", "corner_edge_contacts", "facing_pairs",
+           "order_pairs", "rule_groups"]
 
 #: With ``layout="auto"``, a matrix is stored sparse only when at most this share of its entries is nonzero.
 SPARSE_DENSITY = 0.25
@@ -82,20 +82,29 @@ class PairClasses:
     n_adj: int  # Gauss order of the graded rules
 
 
-def order_pairs(areas: Tensor, iu: Tensor, ju: Tensor) -> tuple[Tensor, Tensor]:
-    """``(dom, tgt)``: each pair ``(iu, ju)`` with its smaller facet (the integration domain) first; ties keep
-    ``iu`` first.
+def order_pairs(areas: Tensor, iu: Tensor, ju: Tensor, tie: float = 0.0) -> tuple[Tensor, Tensor]:
+    """``(dom, tgt)``: each pair ``(iu, ju)`` with its smaller facet (the integration domain) first; ties (areas
+    within ``tie`` of one another, relative; the moments pass the rounding between translated copies of a facet,
+    :func:`copy_tie`, so that copies keep the same domain) keep ``iu`` first.
 
     Shape:
         - areas: ``[F]`` (m²); iu, ju and the outputs: ``[P]``
     """
     kern = loops("pairs")
     if kern is None or areas.device.type != "cpu":
-        swap = areas[iu] > areas[ju]
+        swap = areas[iu] > areas[ju] * (1.0 + tie)
         return torch.where(swap, ju, iu), torch.where(swap, iu, ju)
     dom, tgt = torch.empty_like(iu), torch.empty_like(ju)
-    launch(kern.order_pairs, *(t.detach().contiguous().numpy() for t in (areas, iu, ju)), dom.numpy(), tgt.numpy())
+    launch(kern.order_pairs, *(t.detach().contiguous().numpy() for t in (areas, iu, ju)), float(tie), dom.numpy(),
+           tgt.numpy())
     return dom, tgt
+
+
+def copy_tie(dtype: torch.dtype) -> float:
+    """The relative rounding between translated copies of a facet in a scene of ``dtype`` (their areas, and their
+    corners relative to one of them, over the scene's size): 1e-12 in float64 (a piece far from the origin loses
+    digits in its corners' differences), 16 ulp in float32."""
+    return max(1e-12, 16.0 * torch.finfo(dtype).eps)
 
 
 def classify_pairs(sc: Scene, dom: Tensor, tgt: Tensor, tol: float, adjacent_order: int | None,

@@ -1,0 +1,51 @@
+"""Translated copies among the moments' pairs: two pairs whose facets are the same quads shifted by one vector (a
+uniform subdivision is full of them: a groove's hinge pairs repeat along the hinge, a wall's pieces along the floor)
+have the same unoccluded sums, since each facet's monomials are taken in its own frame about its own centroid. The
+moments integrate one pair of each class and copy its sums to the others (:func:`~.moments.moment_form_factors`);
+the occluded pairs keep their own rays.
+
+Measured: see the closing note of the session that added it (CHANGELOG).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from .compiled import launch
+
+__all__ = ["translated_copies"]
+
+
+
+def translated_copies(kern: Any, setup: dict[str, Any], todo: np.ndarray) -> np.ndarray:
+    """For each pair of ``todo`` the pair whose sums it takes: the first of ``todo`` (in its order) that is a
+    translated copy of it (its own index where there is none).
+
+    Args:
+        kern: The moments' compiled loops (:mod:`._numba_moments`).
+        setup: The pairs of :func:`~.moments.moment_form_factors` (its ``pairs``, ``fine``, ``corners``,
+            ``triangle`` and ``tie``: corners within ``tie`` times the scene's size of one another, relative to their
+            domain's first corner, count as the same; :func:`.pairs.copy_tie`, the rounding between translated
+            copies, which moves their sums by about as little).
+        todo: Pair indices ``[n]`` (int64).
+
+    Returns:
+        Pair indices ``[n]`` (int64); ``rep[t] == todo[t]`` for the pairs that are integrated.
+    """
+    if todo.size < 2:
+        return todo.copy()
+    dom, tgt, kind, rule, shift = setup["pairs"]
+    corners = setup["corners"]
+    size = float(np.linalg.norm(corners.reshape(-1, 3).max(0) - corners.reshape(-1, 3).min(0)))
+    quantum = float(setup["tie"]) * max(size, 1e-300)
+    args = (dom, tgt, kind, rule, shift, setup["fine"].astype(np.int64), corners, setup["triangle"], quantum)
+    keys = np.empty(todo.size, dtype=np.uint64)
+    launch(kern.pair_hashes, todo, *args, keys)
+    _, first, inverse = np.unique(keys, return_index=True, return_inverse=True)
+    rep = todo[first][inverse.reshape(-1)]
+    same = np.empty(todo.size, dtype=np.bool_)
+    launch(kern.same_pairs, todo, rep, *args, same)
+    rep[~same] = todo[~same]  # a hash collision: integrated on its own
+    return rep
