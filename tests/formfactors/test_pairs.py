@@ -118,3 +118,27 @@ def test_dense_matrix_written_from_pairs_equals_the_entry_lists(dtype):
     assert dense.matrix.dtype == dtype and torch.equal(dense.matrix, sparse.to_dense())
     assert dense.info["nnz"] == sparse.info["nnz"] == int((dense.matrix != 0).sum())
     assert abs(dense.info["max_row_sum"] - sparse.info["max_row_sum"]) <= 1e-14
+
+
+def test_order_pairs_ties_within_the_tie(monkeypatch):
+    """Areas within ``tie`` (relative) are a tie and keep ``iu`` first, in the compiled loop and in the torch path
+    alike; outside it the smaller facet is the domain. A float32 area against a float64 tie is compared in float64
+    (1 + 1e-12 would round to 1 in float32)."""
+    areas = torch.tensor([1.0, 1.0 + 5e-13, 1.0 - 5e-13, 1.0 + 5e-12], dtype=torch.float64)
+    iu = torch.tensor([1, 0, 3, 1])
+    ju = torch.tensor([0, 2, 0, 3])
+
+    def run():
+        return torch.stack(pairs.order_pairs(areas, iu, ju, 1e-12))
+
+    got, ref = run(), _torch_reference(monkeypatch, run)
+    assert torch.equal(got, ref)
+    assert got[0].tolist() == [1, 0, 0, 1]  # ties keep iu; (3, 0): 5e-12 apart, facet 0 is smaller
+    assert torch.stack(pairs.order_pairs(areas, iu, ju))[0].tolist() == [0, 2, 0, 1]  # tie 0: the smaller first
+    # float32 areas one ulp (1.19e-7) apart with a tie of 1e-7: not a tie in float64 (in float32 1 + 1e-7 rounds to
+    # that ulp, and the two would tie)
+    small = torch.tensor([1.0, 1.0 + 1.2e-7], dtype=torch.float32)
+    one = torch.tensor([1]), torch.tensor([0])
+    assert pairs.order_pairs(small, *one, 1e-7)[0].tolist() == [0]
+    assert _torch_reference(monkeypatch, lambda: pairs.order_pairs(small, *one, 1e-7))[0].tolist() == [0]
+    assert _torch_reference(monkeypatch, lambda: pairs.order_pairs(small, *one, 1e-6))[0].tolist() == [1]

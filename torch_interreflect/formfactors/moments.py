@@ -193,7 +193,8 @@ def _pairs(sc: Scene, degree: int, tol: float, eps: float, occlusion: Literal["a
     :func:`.pair_contacts.contacts`), its kind (0 exact inner, 1 product Gauss, 2 clipped
     domain), rule, rotation and angular rule, and which pairs need rays; in the arrays the compiled loops take.
     ``exact`` (indexed by ``need_rank``) will hold the occluded pairs' exact unoccluded sums, so their rays can be
-    drawn again alone."""
+    drawn again alone. ``tie`` (:func:`.pairs.copy_tie`): areas that close are a tie for the domain, and ``setup``
+    keeps it for :func:`.moment_copies.translated_copies`."""
     kern = _kernel()
     iu, ju = facing_pairs(sc, eps, ("dense", 8))
     dom, tgt = order_pairs(sc.areas, iu, ju, tie)
@@ -428,7 +429,8 @@ def _pair_sums(kern: Any, setup: dict[str, Any], basis: FacetBasis, todo: np.nda
     need = setup["need"].numpy()
     rep = translated_copies(kern, setup, todo)
     own = dealt(todo[rep == todo])
-    sel = dealt(todo)[need[dealt(todo)]]
+    spread = dealt(todo)
+    sel = spread[need[spread]]
     sel_of = np.full(setup["dom"].numel(), -1, dtype=np.int64)
     sel_of[sel] = np.arange(sel.size)
     ray_start, blocked = _cast(kern, setup, sel, ns, seed)
@@ -445,7 +447,7 @@ def _pair_sums(kern: Any, setup: dict[str, Any], basis: FacetBasis, todo: np.nda
         occluded_src = sel_of[src] >= 0  # an occluded class's exact sums are in `exact`, not in `acc`
         acc[copies] = acc[src]
         acc[copies[occluded_src]] = exact[sel_of[src[occluded_src]]]
-        hit = copies[need[copies]]
+        hit = dealt(copies[need[copies]])
         if hit.size:
             exact[sel_of[hit]] = acc[hit]
             part = np.zeros((hit.size, basis.size, basis.size))

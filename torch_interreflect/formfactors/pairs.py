@@ -83,16 +83,25 @@ class PairClasses:
 
 
 def order_pairs(areas: Tensor, iu: Tensor, ju: Tensor, tie: float = 0.0) -> tuple[Tensor, Tensor]:
-    """``(dom, tgt)``: each pair ``(iu, ju)`` with its smaller facet (the integration domain) first; ties (areas
-    within ``tie`` of one another, relative; the moments pass the rounding between translated copies of a facet,
-    :func:`copy_tie`, so that copies keep the same domain) keep ``iu`` first.
+    """``(dom, tgt)``: each pair ``(iu, ju)`` with its smaller facet (the integration domain) first; ties keep
+    ``iu`` first.
+
+    Args:
+        areas: Facet areas (m²).
+        iu, ju: The pairs' facets.
+        tie: Areas within this of one another (relative, in float64) are a tie. The moments pass the rounding
+            between translated copies of a facet (:func:`copy_tie`), so that copies keep the same domain; 0 (the
+            constant basis): only equal areas.
+
+    Returns:
+        ``(dom, tgt)``.
 
     Shape:
         - areas: ``[F]`` (m²); iu, ju and the outputs: ``[P]``
     """
     kern = loops("pairs")
     if kern is None or areas.device.type != "cpu":
-        swap = areas[iu] > areas[ju] * (1.0 + tie)
+        swap = areas[iu].double() > areas[ju].double() * (1.0 + tie)  # as the compiled loop: in float64
         return torch.where(swap, ju, iu), torch.where(swap, iu, ju)
     dom, tgt = torch.empty_like(iu), torch.empty_like(ju)
     launch(kern.order_pairs, *(t.detach().contiguous().numpy() for t in (areas, iu, ju)), float(tie), dom.numpy(),
@@ -101,10 +110,17 @@ def order_pairs(areas: Tensor, iu: Tensor, ju: Tensor, tie: float = 0.0) -> tupl
 
 
 def copy_tie(dtype: torch.dtype) -> float:
-    """The relative rounding between translated copies of a facet in a scene of ``dtype`` (their areas, and their
-    corners relative to one of them, over the scene's size): 1e-12 in float64 (a piece far from the origin loses
-    digits in its corners' differences), 16 ulp in float32."""
-    return max(1e-12, 16.0 * torch.finfo(dtype).eps)
+    """The relative rounding between translated copies of a facet in a scene of ``dtype``: of their areas, and of
+    their corners relative to one of them over the scene's size.
+
+    Args:
+        dtype: The scene's floating dtype.
+
+    Returns:
+        1e-12 in float64 (a piece far from the origin loses digits in its corners' differences), 16 ulp (1.9e-6) in
+        float32; at most 2e-6, so that coarser dtypes (float16, bfloat16) find only copies that agree to that.
+    """
+    return min(max(1e-12, 16.0 * torch.finfo(dtype).eps), 2e-6)
 
 
 def classify_pairs(sc: Scene, dom: Tensor, tgt: Tensor, tol: float, adjacent_order: int | None,
