@@ -41,7 +41,7 @@ def translated_copies(kern: Any, setup: dict[str, Any], todo: np.ndarray) -> np.
     corners = setup["corners"]
     size = float(np.linalg.norm(corners.reshape(-1, 3).max(0) - corners.reshape(-1, 3).min(0)))
     quantum = float(setup["tie"]) * max(size, 1e-300)
-    args = (dom, tgt, kind, rule, shift, setup["fine"].astype(np.int64), corners, setup["triangle"], quantum)
+    args = (dom, tgt, kind, rule, shift, setup["fine"], corners, setup["triangle"], quantum)
     keys = np.empty(todo.size, dtype=np.uint64)
     launch(kern.pair_hashes, todo, *args, keys)
     _, first, inverse = np.unique(keys, return_index=True, return_inverse=True)

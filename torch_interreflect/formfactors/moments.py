@@ -187,7 +187,7 @@ def _kernel() -> Any:
 
 
 def _pairs(sc: Scene, degree: int, tol: float, eps: float, occlusion: Literal["auto"] | bool,
-           tie: float = 1e-12) -> dict[str, Any]:
+           tie: float) -> dict[str, Any]:
     """The pairs of the moments, each unordered pair once with its domain (the smaller facet, or the one of the
     shorter edge where two edges touch along a line: :func:`~.pairs.corner_edge_contacts`,
     :func:`.pair_contacts.contacts`), its kind (0 exact inner, 1 product Gauss, 2 clipped
@@ -428,7 +428,8 @@ def _pair_sums(kern: Any, setup: dict[str, Any], basis: FacetBasis, todo: np.nda
     (:func:`dealt`); the others take its exact sums, less their own blocked part where they are occluded."""
     need = setup["need"].numpy()
     rep = translated_copies(kern, setup, todo)
-    own = dealt(todo[rep == todo])
+    is_copy = rep != todo
+    own = dealt(todo[~is_copy])
     spread = dealt(todo)
     sel = spread[need[spread]]
     sel_of = np.full(setup["dom"].numel(), -1, dtype=np.int64)
@@ -441,9 +442,9 @@ def _pair_sums(kern: Any, setup: dict[str, Any], basis: FacetBasis, todo: np.nda
         launch(kern.pair_moments, own, *setup["pairs"], setup["fine"], *setup["rules"], setup["corners"],
                setup["normals"], *frames, tri, int(basis.degree), *setup["angular"], setup["buf"], sel_of,
                ray_start, blocked, ns, seed, acc, exact)
-    copies = todo[rep != todo]
+    copies = todo[is_copy]
     if copies.size:
-        src = rep[rep != todo]
+        src = rep[is_copy]
         occluded_src = sel_of[src] >= 0  # an occluded class's exact sums are in `exact`, not in `acc`
         acc[copies] = acc[src]
         acc[copies[occluded_src]] = exact[sel_of[src[occluded_src]]]

@@ -12,7 +12,6 @@ from torch import Tensor
 __all__ = ["GRADE_Q", "default_adjacent_order", "gauss_legendre", "gauss_legendre01", "order_for", "quadrature_rule"]
 
 
-
 @cache
 def gauss_legendre(n: int) -> tuple[np.ndarray, np.ndarray]:
     """Gauss-Legendre nodes and weights ``[n]`` on [-1, 1], computed once per ``n`` and shared (read them only; the
