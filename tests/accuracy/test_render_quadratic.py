@@ -257,6 +257,35 @@ def test_rays_that_would_grow_lower_the_share_instead():
                                                      max_iterations=1))
 
 
+def test_a_sun_s_light_is_computed_once_per_set_of_leaves(monkeypatch):
+    """The W shape under a sun at 1e-3 with one refinement step (the rays grow there): the replicas, the grown rays
+    and their mean are levels on the same leaves, and a sun's moments do not depend on the moments' rows, so the
+    light is computed once per set of leaves (6 light computations on 2 sets of leaves before), and the render is
+    the same bit for bit as one that computes it at every level."""
+    from torch_interreflect.accuracy import moments_plan
+
+    scene, spec, _ = _stored("w_shape_sun_r9")
+    r = torch.full((scene.num_facets,), spec["reflectance"], dtype=D)
+    sun = torch.tensor(spec["light"]["direction"], dtype=D)
+    seen: list = []
+    real_light = moments_plan.light_moments
+    monkeypatch.setattr(moments_plan, "light_moments", lambda sc, *a, **k: seen.append(sc) or real_light(sc, *a, **k))
+
+    def render():
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", AccuracyWarning)
+            return ti.render(scene, r, sun, ONE, wavelengths=WL, accuracy=1e-3, max_iterations=1)
+
+    out = render()
+    assert any("visibility_samples" in h for h in out.report.history)  # levels on the same leaves: the rays grew
+    assert len(seen) == len({id(sc) for sc in seen}) == 2
+    real_level = moments_plan._level
+    monkeypatch.setattr(moments_plan, "_level", lambda *a, light=None, **k: real_level(*a, **k))
+    seen.clear()
+    again = render()
+    assert len(seen) > 2 and torch.equal(again.irradiance, out.irradiance)
+
+
 def _same_under_another_clock(out, again) -> None:
     """``again()`` gives ``out`` bit for bit while the planner's clock jumps by 1 ms to 1,000 s at random: its
     choices (the growth of the ray counts included) are counts of work, not timings, so a render is the same from

@@ -203,7 +203,9 @@ class _Level:
     which user facets hold a leaf where the light is rough (a shadow edge crosses it, a sky or area light reaches it
     through blockable pairs), and under a sky its ray-cast part ``sky`` and, where the sky's open part is counted
     from escaping rays, its other estimate ``rows [n, nb]`` (:func:`~torch_interreflect.light_moments.sky_estimates`;
-    the outputs weigh the two, :func:`~torch_interreflect.solver.solve_moments_sky`)."""
+    the outputs weigh the two, :func:`~torch_interreflect.solver.solve_moments_sky`). ``light``: the light's moments
+    of every degree and its rough leaves where they do not depend on the moments (a sun or a uniform light), for
+    another level on the same leaves (:func:`_level`)."""
 
     full: MomentFormFactors
     K: MomentFormFactors
@@ -213,6 +215,7 @@ class _Level:
     rough: Tensor
     sky: SkyRays | None = None
     rows: Tensor | None = None
+    light: tuple[Tensor, Tensor] | None = None
 
     @property
     def degree(self) -> int:
@@ -222,7 +225,8 @@ class _Level:
 def _level(pb: Problem, leaves: Leaves, share: float, seed: int = 0, sky_samples: int | None = None,
            visibility: int = VISIBILITY_SAMPLES, like: MomentFormFactors | None = None,
            degree: int | None = None, moments: MomentFormFactors | None = None,
-           previous: MomentFormFactors | None = None, sky: SkyRays | None = None) -> _Level:
+           previous: MomentFormFactors | None = None, sky: SkyRays | None = None,
+           light: tuple[Tensor, Tensor] | None = None) -> _Level:
     """Moments and light on ``leaves``; the outputs of degree 1 and 0, and of degree 2 unless the degree-1 estimate
     ``Q_LINEAR |x1 − x0|`` is within ``share``. ``like``: moments of these leaves whose unoccluded pairs are reused
     (only the occluded pairs' rays are drawn again,
@@ -230,7 +234,8 @@ def _level(pb: Problem, leaves: Leaves, share: float, seed: int = 0, sky_samples
     estimate: a check of the rays). ``moments``: these leaves' moments, taken as they are (a check of the sky's
     directions alone). ``previous``: the moments of the leaves before their last split, made with the same settings:
     the pairs of two leaves kept by the split (``leaves.kept``) take their sums from there. ``sky``: the sky's
-    ray-cast part already cast on these leaves (cast with ``sky_samples`` otherwise: :func:`_sky_start` when None)."""
+    ray-cast part already cast on these leaves (cast with ``sky_samples`` otherwise: :func:`_sky_start` when None).
+    ``light``: ``_Level.light`` of a level on these leaves, taken instead of computing the light again."""
     t = time.perf_counter()
     if moments is not None:
         K = moments
@@ -246,9 +251,14 @@ def _level(pb: Problem, leaves: Leaves, share: float, seed: int = 0, sky_samples
     if sky is None and _is_sky(pb):
         sky_samples = _sky_start(pb) if sky_samples is None else sky_samples
         sky = sky_rays(leaves.scene, K, samples=sky_samples, points=sky_points(sky_samples), rows=_weighed(pb))
-    g, rough_leaf = light_moments(leaves.scene, K, leaf_light(pb.light, leaves.user, pb.F), rough=True,
-                                  direction=is_sun, sky=sky)  # type: ignore[misc]
-    g = g.to(device=pb.r.device, dtype=pb.r.dtype)  # light_moments works in float64 on the CPU
+    if light is None:
+        g, rough_leaf = light_moments(leaves.scene, K, leaf_light(pb.light, leaves.user, pb.F), rough=True,
+                                      direction=is_sun, sky=sky)  # type: ignore[misc]
+        g = g.to(device=pb.r.device, dtype=pb.r.dtype)  # light_moments works in float64 on the CPU
+    else:
+        g, rough_leaf = light
+    # a sun's or a uniform light's moments need the leaves' basis alone, not the moments' rows
+    keep = (g, rough_leaf) if is_sun or (isinstance(pb.light, str) and pb.light == "uniform") else None
     rows = None
     if sky is not None and sky.escape_back is not None and sky.escape_ids.numel():
         rows = sky_estimates(leaves.scene, K, sky=sky)[1].to(device=pb.r.device, dtype=pb.r.dtype)
@@ -270,7 +280,7 @@ def _level(pb: Problem, leaves: Leaves, share: float, seed: int = 0, sky_samples
 
     def level(Kd: MomentFormFactors, x: Tensor, est: Tensor) -> _Level:
         n = Kd.size
-        return _Level(K, Kd, g[:, :n], x, est, rough, sky, None if rows is None else rows[:, :n])
+        return _Level(K, Kd, g[:, :n], x, est, rough, sky, None if rows is None else rows[:, :n], keep)
 
     try:
         if degree is not None:
@@ -405,13 +415,13 @@ def _replicas(pb: Problem, leaves: Leaves, lv: _Level, share: float, vis: int, s
     zero = torch.zeros(pb.F, dtype=torch.float64)
     parts, cost = [zero, zero.clone()], [0.0, 0.0]
     K_b = resample_visibility(lv.full, seed=seed, visibility_samples=vis)
-    x_b = _level(pb, leaves, share, degree=lv.degree, moments=K_b, sky=lv.sky).x
+    x_b = _level(pb, leaves, share, degree=lv.degree, moments=K_b, sky=lv.sky, light=lv.light).x
     cost[0] = visibility_cost(K_b)
     parts[0] = relative_change(x_b, lv.x).cpu() / REPLICA_MARGIN
     sky_b = None
     if lv.sky is not None and (lv.sky.escape_ids.numel() or lv.sky.back_ids.numel()):
         sky_b = sky_rays(leaves.scene, lv.full, samples=sky, points=sky_points(sky), seed=seed, rows=_weighed(pb))
-        x_b = _level(pb, leaves, share, degree=lv.degree, moments=lv.full, sky=sky_b).x
+        x_b = _level(pb, leaves, share, degree=lv.degree, moments=lv.full, sky=sky_b, light=lv.light).x
         cost[1] = sky_cost(sky_b, sky)
         parts[1] = relative_change(x_b, lv.x).cpu() / REPLICA_MARGIN
     return _Replicas(lv, K_b, sky_b, parts, cost)
@@ -449,13 +459,14 @@ def _ray_parts(pb: Problem, leaves: Leaves, lv: _Level, est: Tensor, share: floa
             done = (new_vis, new_sky) == (vis, sky)
         if done:
             sky_mean = lv.sky.mean(sky_b) if lv.sky is not None and sky_b is not None else lv.sky
-            return (_level(pb, leaves, share, degree=lv.degree, moments=mean_moments(lv.full, K_b), sky=sky_mean),
+            return (_level(pb, leaves, share, degree=lv.degree, moments=mean_moments(lv.full, K_b), sky=sky_mean,
+                           light=lv.light),
                     ray, est)
         same_vis, same_sky = new_vis == vis, new_sky == sky
         vis, sky = new_vis, new_sky
         lv = _level(pb, leaves, share, sky_samples=sky, visibility=vis, like=None if same_vis else lv.full,
                     moments=lv.full if same_vis else None, degree=DEGREE if halving else None,
-                    sky=lv.sky if same_sky else None)
+                    sky=lv.sky if same_sky else None, light=lv.light)
         est = est if halving else lv.est
         history.append({"leaves": float(leaves.scene.num_facets), "estimated": rms(est),
                         "seconds": time.perf_counter() - t_start, "visibility_samples": float(vis),
