@@ -218,7 +218,7 @@ def test_radial_integrals_against_mpmath():
     h = 0.7
     for x in (1e-5, 1e-3, 0.05, 0.0999, 0.1001, 0.7, 30.0):
         R = x * h
-        got = radial(h, R)
+        got = radial(h, h * h, 1.0 / h, R)  # h² and 1 / h as inner_exact hands them over
         for n, scale in enumerate((h * h, h, h, h)):
             ref = scale * mpmath.quad(lambda r, n=n: r ** (n + 1) / (h * h + r * r) ** 2, [0, R])
             assert got[n] == pytest.approx(float(ref), rel=2e-12)

@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import math
 
-import numpy as np
 from numba import njit
 
 __all__ = ["KMAX", "clip_polygon", "frame_coords", "inner_exact"]
@@ -59,34 +58,42 @@ def clip_polygon(V, nv, x, nx, W):
     return nW if nW >= 3 else 0
 
 
-@njit(cache=True)
-def _radial(h, R):
-    """``h² J0, h J1, h J2, h J3`` with ``J_n(R) = ∫_0^R ρ^(n+1) / (h² + ρ²)² dρ`` (no ``1/h`` factors left)."""
-    h2 = h * h
+@njit(cache=True, inline="always")
+def _series(x):
+    """The series parts of :func:`_radial` for ``x = R / h`` below :data:`_SERIES_X`: the closed forms cancel for a
+    target small against its height (t3 lost all digits at R/h = 1e-4), so ``s^m / (1 + s²)² = Σ (−1)^k (k + 1)
+    s^(m + 2k)`` is integrated termwise, 12 terms (x^24 < 1e-24)."""
+    x2 = x * x
+    s1 = 0.0
+    s2 = 0.0
+    s3 = 0.0
+    p = x2 * x  # x^(3 + 2k)
+    sign = 1.0
+    for k in range(12):
+        s1 += sign * (k + 1) * p / (3 + 2 * k)
+        s2 += sign * (k + 1) * p * x / (4 + 2 * k)
+        s3 += sign * (k + 1) * p * x2 / (5 + 2 * k)
+        p *= x2
+        sign = -sign
+    return s1, s2, s3
+
+
+@njit(cache=True, inline="always")
+def _radial(h, h2, inv_h, R):
+    """``h² J0, h J1, h J2, h J3`` with ``J_n(R) = ∫_0^R ρ^(n+1) / (h² + ρ²)² dρ`` (no ``1/h`` factors left), given
+    ``h2 = h²`` and ``inv_h = 1 / h`` (one division here)."""
     R2 = R * R
-    den = h2 + R2
-    x = R / h
+    inv_den = 1.0 / (h2 + R2)
+    x = R * inv_h
+    t0 = 0.5 * R2 * inv_den
     if x < _SERIES_X:
-        # the closed forms cancel for a target small against its height (t3 lost all digits at R/h = 1e-4): the
-        # series of s^m / (1 + s²)² = Σ (−1)^k (k + 1) s^(m + 2k), integrated termwise, 12 terms (x^24 < 1e-24)
-        x2 = x * x
-        s1 = 0.0
-        s2 = 0.0
-        s3 = 0.0
-        p = x2 * x  # x^(3 + 2k)
-        sign = 1.0
-        for k in range(12):
-            s1 += sign * (k + 1) * p / (3 + 2 * k)
-            s2 += sign * (k + 1) * p * x / (4 + 2 * k)
-            s3 += sign * (k + 1) * p * x2 / (5 + 2 * k)
-            p *= x2
-            sign = -sign
-        return R2 / (2.0 * den), s1, h * s2, h2 * s3
+        s1, s2, s3 = _series(x)
+        return t0, s1, h * s2, h2 * s3
     at = math.atan(x)
-    t0 = R2 / (2.0 * den)
-    t1 = 0.5 * at - h * R / (2.0 * den)
-    t2 = 0.5 * h * (math.log1p(R2 / h2) - R2 / den)
-    t3 = h * R - 1.5 * h2 * at + h2 * h * R / (2.0 * den)
+    hr = h * R
+    t1 = 0.5 * at - 0.5 * hr * inv_den
+    t2 = 0.5 * h * (math.log1p(x * x) - R2 * inv_den)
+    t3 = hr - 1.5 * h2 * at + 0.5 * h2 * hr * inv_den
     return t0, t1, t2, t3
 
 
@@ -104,22 +111,28 @@ def inner_exact(x, nx, V, nv, nP, cj, e1, e2, inv_l, deg, gx, gw, panel, W, mom)
     nw = clip_polygon(V, nv, x, nx, W)
     if nw == 0:
         return
+    h2 = h * h
+    inv_h = 1.0 / h
     y0, y1, y2 = x[0] - h * nP[0], x[1] - h * nP[1], x[2] - h * nP[2]
     bs = nx[0] * e1[0] + nx[1] * e1[1] + nx[2] * e1[2]
     bt = nx[0] * e2[0] + nx[1] * e2[1] + nx[2] * e2[2]
     cc = nx[0] * nP[0] + nx[1] * nP[1] + nx[2] * nP[2]
     p0, q0 = frame_coords(y0, y1, y2, cj, e1, e2, inv_l)
-    S = np.empty(KMAX)
-    T = np.empty(KMAX)
-    area2 = 0.0
+    # the clipped polygon in the target's frame about the foot, in place of its corners (``W[:, :2]``)
     for k in range(nw):
         d0, d1, d2 = W[k, 0] - y0, W[k, 1] - y1, W[k, 2] - y2
-        S[k] = d0 * e1[0] + d1 * e1[1] + d2 * e1[2]
-        T[k] = d0 * e2[0] + d1 * e2[1] + d2 * e2[2]
+        W[k, 0] = d0 * e1[0] + d1 * e1[1] + d2 * e1[2]
+        W[k, 1] = d0 * e2[0] + d1 * e2[1] + d2 * e2[2]
+    S = W[:, 0]
+    T = W[:, 1]
+    area2 = 0.0
     for k in range(nw):
         kb = k + 1 if k + 1 < nw else 0
         area2 += S[k] * T[kb] - T[k] * S[kb]
     orient = 1.0 if area2 > 0 else -1.0
+    # Σ over the rays of w (c0, p1 c1, q1 c1, p1² c2, p1 q1 c2, q1² c2): the monomials expanded about the foot
+    # (p0, q0) once at the end, m(p0 + p1 ρ, q0 + q1 ρ), not at every ray
+    a0 = bp = bq = cpp = cpq = cqq = 0.0
     for k in range(nw):
         kb = k + 1 if k + 1 < nw else 0
         as_, at_ = S[k], T[k]
@@ -147,26 +160,36 @@ def inner_exact(x, nx, V, nv, nP, cj, e1, e2, inv_l, deg, gx, gw, panel, W, mom)
             for g in range(gx.shape[0]):
                 u = mid + half * gx[g]
                 eu = math.exp(u)  # cosh and sinh from one exponential
-                ch = 0.5 * (eu + 1.0 / eu)
-                sig = dist * (0.5 * (eu - 1.0 / eu))
+                ie = 1.0 / eu
+                ch = 0.5 * (eu + ie)
+                sig = dist * (0.5 * (eu - ie))
                 R = dist * ch
-                wgt = sign * gw[g] * half / ch
-                os_ = (fs + sig * ts) / R
-                ot = (ft + sig * tt) / R
+                inv_r = 1.0 / R
+                wgt = sign * gw[g] * half * dist * inv_r  # · 1 / cosh(u)
+                os_ = (fs + sig * ts) * inv_r
+                ot = (ft + sig * tt) * inv_r
                 bw = bs * os_ + bt * ot
-                t0, t1, t2, t3 = _radial(h, R)
+                t0, t1, t2, t3 = _radial(h, h2, inv_h, R)
                 # Σ over the ray of (bw ρ − h cc) m(ρ) ρ / (h² + ρ²)² · h, m = a0 + a1 ρ + a2 ρ²
                 c0 = bw * t1 - cc * t0  # a0 term
                 c1 = bw * t2 - cc * h * t1  # a1 term
                 c2 = bw * t3 - cc * h * t2  # a2 term
-                mom[0] += wgt * c0
+                a0 += wgt * c0
                 if deg >= 1:
                     p1, q1 = os_ * inv_l, ot * inv_l
-                    mom[1] += wgt * (p0 * c0 + p1 * c1)
-                    mom[2] += wgt * (q0 * c0 + q1 * c1)
+                    w1 = wgt * c1
+                    bp += w1 * p1
+                    bq += w1 * q1
                     if deg >= 2:
-                        mom[3] += wgt * (p0 * p0 * c0 + 2.0 * p0 * p1 * c1 + p1 * p1 * c2)
-                        mom[4] += wgt * (p0 * q0 * c0 + (p0 * q1 + p1 * q0) * c1 + p1 * q1 * c2)
-                        mom[5] += wgt * (q0 * q0 * c0 + 2.0 * q0 * q1 * c1 + q1 * q1 * c2)
-    for d in range(nb):
-        mom[d] *= _INV_PI
+                        w2 = wgt * c2
+                        cpp += w2 * p1 * p1
+                        cpq += w2 * p1 * q1
+                        cqq += w2 * q1 * q1
+    mom[0] = a0 * _INV_PI
+    if deg >= 1:
+        mom[1] = (p0 * a0 + bp) * _INV_PI
+        mom[2] = (q0 * a0 + bq) * _INV_PI
+        if deg >= 2:
+            mom[3] = (p0 * p0 * a0 + 2.0 * p0 * bp + cpp) * _INV_PI
+            mom[4] = (p0 * q0 * a0 + p0 * bq + q0 * bp + cpq) * _INV_PI
+            mom[5] = (q0 * q0 * a0 + 2.0 * q0 * bq + cqq) * _INV_PI
