@@ -28,7 +28,6 @@ KMAX = 8
 _SERIES_X = 0.1
 
 
-
 @njit(cache=True, inline="always")
 def frame_coords(x0, x1, x2, c, e1, e2, inv_l):
     """The coordinates ``(p, q)`` of ``x`` in a facet's frame (centroid ``c``, axes ``e1, e2``, ``1 / L``)."""
@@ -97,6 +96,35 @@ def _radial(h, h2, inv_h, R):
     return t0, t1, t2, t3
 
 
+@njit(cache=True, inline="always")
+def _to_frame(W, nw, y0, y1, y2, e1, e2):
+    """The clipped polygon ``W[:nw]`` in the target's frame about the foot ``y``, in place (``W[:, 0]``, ``W[:, 1]``);
+    its orientation (+1 counter-clockwise, −1 clockwise)."""
+    for k in range(nw):
+        d0, d1, d2 = W[k, 0] - y0, W[k, 1] - y1, W[k, 2] - y2
+        W[k, 0] = d0 * e1[0] + d1 * e1[1] + d2 * e1[2]
+        W[k, 1] = d0 * e2[0] + d1 * e2[1] + d2 * e2[2]
+    area2 = 0.0
+    for k in range(nw):
+        kb = k + 1 if k + 1 < nw else 0
+        area2 += W[k, 0] * W[kb, 1] - W[k, 1] * W[kb, 0]
+    return 1.0 if area2 > 0 else -1.0
+
+
+@njit(cache=True, inline="always")
+def _expand(mom, deg, p0, q0, a0, bp, bq, cpp, cpq, cqq):
+    """``mom`` from the rays' sums ``Σ w (c0, p1 c1, q1 c1, p1² c2, p1 q1 c2, q1² c2)``: the monomials of the target
+    expanded about the foot ``(p0, q0)``, ``m(p0 + p1 ρ, q0 + q1 ρ)``, once per point rather than at every ray."""
+    mom[0] = a0 * _INV_PI
+    if deg >= 1:
+        mom[1] = (p0 * a0 + bp) * _INV_PI
+        mom[2] = (q0 * a0 + bq) * _INV_PI
+        if deg >= 2:
+            mom[3] = (p0 * p0 * a0 + 2.0 * p0 * bp + cpp) * _INV_PI
+            mom[4] = (p0 * q0 * a0 + p0 * bq + q0 * bp + cpq) * _INV_PI
+            mom[5] = (q0 * q0 * a0 + 2.0 * q0 * bq + cqq) * _INV_PI
+
+
 @njit(cache=True)
 def inner_exact(x, nx, V, nv, nP, cj, e1, e2, inv_l, deg, gx, gw, panel, W, mom):
     """``mom[d] = ∫_P k(x, y) m_d(y) dA_y`` over the target ``V[:nv]`` (normal ``nP``, frame ``cj, e1, e2``, ``1/L``)
@@ -118,20 +146,9 @@ def inner_exact(x, nx, V, nv, nP, cj, e1, e2, inv_l, deg, gx, gw, panel, W, mom)
     bt = nx[0] * e2[0] + nx[1] * e2[1] + nx[2] * e2[2]
     cc = nx[0] * nP[0] + nx[1] * nP[1] + nx[2] * nP[2]
     p0, q0 = frame_coords(y0, y1, y2, cj, e1, e2, inv_l)
-    # the clipped polygon in the target's frame about the foot, in place of its corners (``W[:, :2]``)
-    for k in range(nw):
-        d0, d1, d2 = W[k, 0] - y0, W[k, 1] - y1, W[k, 2] - y2
-        W[k, 0] = d0 * e1[0] + d1 * e1[1] + d2 * e1[2]
-        W[k, 1] = d0 * e2[0] + d1 * e2[1] + d2 * e2[2]
+    orient = _to_frame(W, nw, y0, y1, y2, e1, e2)
     S = W[:, 0]
     T = W[:, 1]
-    area2 = 0.0
-    for k in range(nw):
-        kb = k + 1 if k + 1 < nw else 0
-        area2 += S[k] * T[kb] - T[k] * S[kb]
-    orient = 1.0 if area2 > 0 else -1.0
-    # Σ over the rays of w (c0, p1 c1, q1 c1, p1² c2, p1 q1 c2, q1² c2): the monomials expanded about the foot
-    # (p0, q0) once at the end, m(p0 + p1 ρ, q0 + q1 ρ), not at every ray
     a0 = bp = bq = cpp = cpq = cqq = 0.0
     for k in range(nw):
         kb = k + 1 if k + 1 < nw else 0
@@ -185,11 +202,4 @@ def inner_exact(x, nx, V, nv, nP, cj, e1, e2, inv_l, deg, gx, gw, panel, W, mom)
                         cpp += w2 * p1 * p1
                         cpq += w2 * p1 * q1
                         cqq += w2 * q1 * q1
-    mom[0] = a0 * _INV_PI
-    if deg >= 1:
-        mom[1] = (p0 * a0 + bp) * _INV_PI
-        mom[2] = (q0 * a0 + bq) * _INV_PI
-        if deg >= 2:
-            mom[3] = (p0 * p0 * a0 + 2.0 * p0 * bp + cpp) * _INV_PI
-            mom[4] = (p0 * q0 * a0 + p0 * bq + q0 * bp + cpq) * _INV_PI
-            mom[5] = (q0 * q0 * a0 + 2.0 * q0 * bq + cqq) * _INV_PI
+    _expand(mom, deg, p0, q0, a0, bp, bq, cpp, cpq, cqq)
