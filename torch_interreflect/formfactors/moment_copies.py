@@ -13,6 +13,7 @@ from typing import Any
 
 import numpy as np
 
+from ..geometry._polygon import scene_size
 from .compiled import launch
 
 __all__ = ["translated_copies"]
@@ -24,7 +25,7 @@ def translated_copies(kern: Any, setup: dict[str, Any], todo: np.ndarray) -> np.
 
     Args:
         kern: The moments' compiled loops (:mod:`._numba_moments`).
-        setup: The pairs of :func:`~.moments.moment_form_factors` (its ``pairs``, ``fine``, ``corners``,
+        setup: The pairs of :func:`~.moments.moment_form_factors` (its ``pairs``, ``fine``, ``corners``, ``scene``,
             ``triangle`` and ``tie``). Corners relative to their domain's first corner are rounded to steps of
             ``tie`` times the scene's size (:func:`.pairs.copy_tie`, the rounding between translated copies, which
             moves their sums by about as little); pairs whose steps agree are copies. Rounding to steps, two copies
@@ -39,8 +40,7 @@ def translated_copies(kern: Any, setup: dict[str, Any], todo: np.ndarray) -> np.
         return todo.copy()
     dom, tgt, kind, rule, shift = setup["pairs"]
     corners = setup["corners"]
-    size = float(np.linalg.norm(corners.reshape(-1, 3).max(0) - corners.reshape(-1, 3).min(0)))
-    quantum = float(setup["tie"]) * max(size, 1e-300)
+    quantum = float(setup["tie"]) * max(scene_size(setup["scene"]), 1e-300)
     args = (dom, tgt, kind, rule, shift, setup["fine"], corners, setup["triangle"], quantum)
     keys = np.empty(todo.size, dtype=np.uint64)
     launch(kern.pair_hashes, todo, *args, keys)
