@@ -45,7 +45,7 @@ from torch import Tensor
 
 from .._checks import check_count
 from .._threads import caller_threads, compiled_work
-from ..errors import ValueRangeError
+from ..errors import ShapeError, ValueRangeError
 from ..geometry._polygon import plane_eps
 from ..geometry.raycast import RayCaster
 from ..geometry.scene import Scene
@@ -187,16 +187,20 @@ def _kernel() -> Any:
 
 
 def _pairs(sc: Scene, degree: int, tol: float, eps: float, occlusion: Literal["auto"] | bool,
-           tie: float) -> dict[str, Any]:
+           tie: float, across: Tensor | None = None) -> dict[str, Any]:
     """The pairs of the moments, each unordered pair once with its domain (the smaller facet, or the one of the
     shorter edge where two edges touch along a line: :func:`~.pairs.corner_edge_contacts`,
     :func:`.pair_contacts.contacts`), its kind (0 exact inner, 1 product Gauss, 2 clipped
     domain), rule, rotation and angular rule, and which pairs need rays; in the arrays the compiled loops take.
     ``exact`` (indexed by ``need_rank``) will hold the occluded pairs' exact unoccluded sums, so their rays can be
     drawn again alone. ``tie`` (:func:`.pairs.copy_tie`): areas that close are a tie for the domain, and ``setup``
-    keeps it for :func:`.moment_copies.translated_copies`."""
+    keeps it for :func:`.moment_copies.translated_copies`. ``across``: only the pairs between a facet in this mask
+    and one outside it."""
     kern = _kernel()
     iu, ju = facing_pairs(sc, eps, ("dense", 8))
+    if across is not None:
+        keep = across[iu] != across[ju]
+        iu, ju = iu[keep], ju[keep]
     dom, tgt = order_pairs(sc.areas, iu, ju, tie)
     cls = classify_pairs(sc, dom, tgt, tol, None, eps)
     dom, tgt, cls = corner_edge_contacts(sc, dom, tgt, cls)
@@ -279,6 +283,7 @@ def moment_form_factors(
     visibility_samples: int = 3,
     seed: int = 0,
     reuse: tuple[MomentFormFactors, Tensor] | None = None,
+    across: Tensor | None = None,
 ) -> MomentFormFactors:
     """Galerkin moments ``G`` of the interreflection kernel on a polynomial basis of degree ``degree`` per facet.
 
@@ -301,6 +306,8 @@ def moment_form_factors(
             Without occlusion, and with the kept facets in their previous order (as ``split`` keeps them), the
             result is the same as without ``reuse``: bit for bit where no pair is a translated copy of another (in
             another order, or with copies, to rounding).
+        across: Only the pairs between a facet in this boolean mask ``[F]`` and one outside it (the others are 0):
+            the scene's openings against its facets (:func:`~torch_interreflect.sky_openings.sky_through_openings`).
 
     Returns:
         :class:`MomentFormFactors` with ``info``: ``pairs``, ``near``/``far``/``clipped`` counts, ``occluded_pairs``,
@@ -309,7 +316,8 @@ def moment_form_factors(
         copy, :func:`.moment_copies.translated_copies`) and ``settings``.
 
     Raises:
-        ValueRangeError: a bad ``degree``, ``quadrature_tol`` or ``visibility_samples``.
+        ValueRangeError: a bad ``degree``, ``quadrature_tol`` or ``visibility_samples``. ShapeError: ``across`` not
+            of shape ``[F]``, or given with ``reuse``.
         ValueError: ``reuse`` whose moments do not hold their sums, were made with other settings, or whose
             ``kept`` facets are not this scene's first facets.
         RuntimeError: the compiled loops are disabled (``TI_DISABLE_NUMBA=1``).
@@ -332,13 +340,16 @@ def moment_form_factors(
     if occlusion not in ("auto", True, False):
         raise ValueRangeError(f"occlusion must be 'auto', True or False; got {occlusion!r}")
     check_count(visibility_samples, "visibility_samples", note=" (rays per side of the target)")
+    if across is not None and (tuple(across.shape) != (scene.num_facets,) or reuse is not None):
+        raise ShapeError(f"across must be a mask [{scene.num_facets}], without reuse; got {list(across.shape)}")
     with compiled_work():  # torch's glue on one thread, the compiled loops and rays on the caller's
         kern = _kernel()
         sc = scene.to(torch.float64).to("cpu").detach()
         settings = {"degree": int(degree), "quadrature_tol": float(quadrature_tol), "occlusion": occlusion,
                     "visibility_samples": int(visibility_samples)}
         old_of = None if reuse is None else reuse_map(sc, reuse, settings)
-        setup = _pairs(sc, degree, quadrature_tol, plane_eps(scene), occlusion, copy_tie(scene.dtype))
+        setup = _pairs(sc, degree, quadrature_tol, plane_eps(scene), occlusion, copy_tie(scene.dtype),
+                       None if across is None else torch.as_tensor(across, dtype=torch.bool).cpu())
         basis = facet_basis(sc, degree)
         acc = np.zeros((setup["dom"].numel(), nb, nb))
         todo = np.arange(acc.shape[0], dtype=np.int64)

@@ -5,6 +5,7 @@
 - :mod:`.raycast`: :class:`RayCaster` (Embree, through ``embreex``; imported on first use).
 - :mod:`.contacts`: :func:`split_at_contacts` (split facets where another facet stands on them).
 - :mod:`.sizing`: :func:`subdivide_to` (split every facet into pieces no longer than a length).
+- :mod:`.openings`: :func:`~.openings.openings` (the convex hull's faces that no facet covers: where a sky shines in).
 """
 
 from . import scenes

@@ -1,0 +1,133 @@
+"""The openings of a scene: the faces of its convex hull that no facet covers, where a sky can shine in.
+
+Every ray that leaves a scene crosses the boundary of its convex hull once, on the way out. Where a face of the
+hull lies under facets of the scene (a wall on the hull), the ray is stopped there; where no facet lies in it, the
+ray escapes. So the part of the sky a point sees is the form factor, with occlusion, from the point to the hull
+faces no facet covers: :func:`openings` returns them as facets that face into the scene, for
+:func:`torch_interreflect.light_moments.sky_through_openings`.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from ._polygon import plane_eps
+from .scene import Scene
+
+__all__ = ["COVERED", "openings"]
+
+#: A hull face counts as covered where the coplanar facets' area is at least this share of its own, and as open
+#: where it is at most ``1 − COVERED``; anything between is a partly covered face (:func:`openings` returns None).
+COVERED = 1.0 - 1e-6
+
+
+def _faces(points: np.ndarray, eps: float) -> list[tuple[np.ndarray, float, np.ndarray]] | None:
+    """The hull's faces as ``(outward unit normal [3], offset d with n·x + d = 0, corners [k, 3] in order)``;
+    ``None`` where the points span no volume. Coplanar hull triangles (within ``eps``) are merged into one face."""
+    from scipy.spatial import ConvexHull, QhullError
+
+    try:
+        hull = ConvexHull(points)
+    except (QhullError, ValueError):
+        return None
+    eq = hull.equations
+    group = np.full(len(eq), -1)
+    faces = []
+    for s in range(len(eq)):
+        if group[s] >= 0:
+            continue
+        same = (group < 0) & (np.abs(eq[:, :3] @ eq[s, :3] - 1.0) < 1e-9) & (np.abs(eq[:, 3] - eq[s, 3]) < eps)
+        group[same] = len(faces)
+        n, d = eq[s, :3], float(eq[s, 3])
+        corners = np.unique(points[hull.simplices[same].reshape(-1)], axis=0)
+        centre = corners.mean(0)
+        t1 = corners[0] - centre
+        t1 /= np.linalg.norm(t1)
+        t2 = np.cross(n, t1)
+        order = np.argsort(np.arctan2((corners - centre) @ t2, (corners - centre) @ t1))  # counter-clockwise about n
+        faces.append((n, d, corners[order]))
+    return faces
+
+
+def _area(polygon: np.ndarray) -> float:
+    c = polygon - polygon[0]
+    return 0.5 * float(np.linalg.norm(np.cross(c[1:-1], c[2:]).sum(0)))
+
+
+def _wedged(polygon: np.ndarray, sc: Scene, eps: float) -> bool:
+    """Whether facets of two planes lie along one stretch of an edge of the opening ``polygon [k, 3]`` (the valley of
+    a W shape on its hull's floor): the one in front hides the opening from the other right up to the edge, where
+    the kernel is singular, and the blocked part that the rays sample there does not converge."""
+    corners = sc.corners.numpy()
+    a = corners.reshape(-1, 3)
+    b = np.roll(corners, -1, axis=1).reshape(-1, 3)  # each facet edge; a triangle's repeated corner has length 0
+    normal = np.repeat(sc.normals.numpy(), 4, axis=0)
+    for p, q in zip(polygon, np.roll(polygon, -1, axis=0), strict=True):
+        length = float(np.linalg.norm(q - p))
+        u = (q - p) / length
+        ta, tb = (a - p) @ u, (b - p) @ u
+        off_a = np.linalg.norm(a - p - ta[:, None] * u, axis=1)
+        off_b = np.linalg.norm(b - p - tb[:, None] * u, axis=1)
+        lo, hi = np.maximum(np.minimum(ta, tb), 0.0), np.minimum(np.maximum(ta, tb), length)
+        on = (off_a < eps) & (off_b < eps) & (hi - lo > eps)
+        idx = np.nonzero(on)[0]
+        for m in range(idx.size):
+            for k in idx[m + 1:]:
+                other_plane = abs(float(normal[idx[m]] @ normal[k])) < 1.0 - 1e-6
+                if other_plane and min(hi[idx[m]], hi[k]) - max(lo[idx[m]], lo[k]) > eps:
+                    return True
+    return False
+
+
+def openings(scene: Scene) -> Scene | None:
+    """The faces of the scene's convex hull that no facet covers, as facets facing into the scene.
+
+    A hull face is covered where facets of the scene lie in its plane over all of its area, and open where none
+    does; the open ones are returned (a face of three or four corners as one facet, a larger one as a fan of
+    triangles), their corners in the order that makes their normals point into the hull. A sky of radiance ``L``
+    then gives a point ``x`` of the scene the irradiance ``π L Σ_o F(x → o)``, ``F`` with occlusion.
+
+    Args:
+        scene: The scene (its corners in metres).
+
+    Returns:
+        The openings as a :class:`Scene` in the scene's dtype (on the CPU), or None where there is none (a closed
+        scene) or they cannot be told from the hull: a hull face only partly covered, an edge of an opening
+        along which facets of two planes meet (a W shape's valleys on its hull's floor), or a scene that spans no
+        volume (flat).
+
+    Example:
+        >>> import torch, torch_interreflect as ti
+        >>> from torch_interreflect.geometry.openings import openings
+        >>> box = ti.scenes.cornell_box(light=False, dtype=torch.float64)   # open at the front, z = 0
+        >>> o = openings(box)
+        >>> o.num_facets, float(o.normals[0, 2])              # one opening, facing into the box (+z)
+        (1, 1.0)
+    """
+    sc = scene.detach().to(torch.float64).to("cpu")
+    eps = plane_eps(sc)
+    points = sc.corners.reshape(-1, 3).numpy()
+    faces = _faces(points, eps)
+    if faces is None:
+        return None
+    normals, centroids, areas = sc.normals.numpy(), sc.centroids.numpy(), sc.areas.numpy()
+    tris, quads = [], []
+    for n, d, corners in faces:
+        inside = (np.abs(np.abs(normals @ n) - 1.0) < 1e-6) & (np.abs(centroids @ n + d) < eps)
+        share = float(areas[inside].sum()) / _area(corners)
+        if share >= COVERED:
+            continue
+        if share > 1.0 - COVERED:
+            return None
+        if _wedged(corners, sc, eps):
+            return None
+        inward = corners[::-1]
+        if len(inward) == 4:
+            quads.append(inward)
+        else:  # a triangle, or a fan of them
+            tris += [np.stack([inward[0], inward[k], inward[k + 1]]) for k in range(1, len(inward) - 1)]
+    parts = [Scene.from_polygons(torch.as_tensor(np.stack(p), dtype=scene.dtype)) for p in (quads, tris) if p]
+    if not parts:
+        return None
+    return parts[0] if len(parts) == 1 else Scene.concatenate(parts)
