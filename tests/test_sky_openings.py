@@ -64,3 +64,42 @@ def test_a_float32_scene_gives_the_same_light_in_float64():
     g32 = sky_through_openings(scene.to(torch.float32), 2, visibility_samples=4)
     assert g32.dtype == torch.float64
     assert float((g32 - g).abs().max()) < 1e-3 * float(g.abs().max())
+
+
+def test_sky_rays_take_the_openings_where_they_are_told():
+    """``sky_rays(..., openings=True)``: the open part of every facet from the openings (the light equals
+    :func:`sky_through_openings` bit for bit with the same rays, :data:`OPENING_SAMPLES` of the count), the back
+    coverage for the rows' estimate where a back may be in view; where the openings cannot be told, the escaping rays
+    as before."""
+    from torch_interreflect.geometry._polygon import facing_any
+    from torch_interreflect.light_moments import OPENING_SAMPLES, sky_rays
+
+    box = ti.scenes.cornell_box(light=False, dtype=torch.float64)
+    K = moment_form_factors(box, 2, quadrature_tol=1e-4)
+    sky = sky_rays(box, K, samples=8, points=4, openings=True, rows=True)
+    assert torch.equal(sky.escape_ids, torch.arange(box.num_facets)) and sky.back_ids.numel() == 0
+    assert sky.opening_rays is not None and sky.opening_rays > 0
+    g = light_moments(box, K, "sky", sky=sky)
+    n = round(8 * OPENING_SAMPLES)  # rays per side of the opening for 8 sky directions per axis
+    assert torch.equal(g, sky_through_openings(box, 2, quadrature_tol=1e-4, visibility_samples=n))
+    back = sky.escape_back.abs().sum(1) > 0
+    assert bool(back.any()) and not bool((back & ~facing_any(box, one_way=True)).any())
+    assert bool((sky.escape_back[:, 0] <= 1.0 + 1e-12).all())
+    w = ti.scenes.w_shape(dtype=torch.float64)
+    assert sky_rays(w, moment_form_factors(w, 0), samples=4, points=2, openings=True).opening_rays is None
+
+
+def test_a_facet_facing_out_of_the_scene_sees_all_of_the_sky():
+    """The open room's cabinet back, against the wall and facing out: the escaping rays count all of its view (the
+    Mitsuba reference lights it so); the openings alone would give 0."""
+    from torch_interreflect.geometry.openings import facing_out
+
+    room = ti.scenes.room(1.0, lamp=False, ceiling=False, dtype=torch.float64)
+    out = facing_out(room)
+    g = sky_through_openings(room, 1, quadrature_tol=1e-3, visibility_samples=2)
+    expected = torch.zeros(int(out.sum()), 3, dtype=torch.float64)
+    expected[:, 0] = torch.pi
+    assert torch.equal(g[out], expected)
+    K = moment_form_factors(room, 0, quadrature_tol=1e-3, visibility_samples=2)
+    esc = light_moments(room, K, "sky", sky_samples=8, sky_points=4)[:, 0]
+    assert torch.allclose(esc[out], torch.full_like(esc[out], torch.pi))

@@ -143,10 +143,10 @@ def _count_light_checks(monkeypatch) -> list:
 @pytest.mark.parametrize("name", ["cornell_sky_r9", "cornell_sky_r2"])
 def test_the_cornell_box_under_a_sky_meets_the_request(name, monkeypatch):
     """Against the stored converged Mitsuba reference (noise 0.02 %): the sky through blockable pairs and the blocks'
-    contacts make the light rough, so ``auto`` plans by halving. Measured at 1e-2: 0.27 % (r = 0.9, the sky's two
-    estimates weighed, its first rays fewer at this request: 0.062 % with 16² directions) and 0.30 % (r = 0.2) from
-    Mitsuba in 212 leaves each, estimated 0.89 % and 0.87 % (the constant basis had taken 4,448 leaves for 0.30 % at
-    r = 0.9 and warned at r = 0.2 with an actual 3.4 %)."""
+    contacts make the light rough, so ``auto`` plans by halving; the sky's open part comes from the box's opening.
+    Measured at 1e-2: 0.089 % (r = 0.9, the sky's two estimates weighed) and 0.40 % (r = 0.2) from Mitsuba in 200 and
+    212 leaves, estimated 0.52 % and 0.45 % (with the escaping rays: 0.27 % and 0.30 %, estimated 0.89 % and 0.87 %;
+    the constant basis had taken 4,448 leaves for 0.30 % at r = 0.9 and warned at r = 0.2 with an actual 3.4 %)."""
     scene, spec, reference = _stored(name)
     level = torch.full((1,), spec["light"]["radiance"], dtype=D)
     r = torch.full((scene.num_facets,), spec["reflectance"], dtype=D)
@@ -187,9 +187,10 @@ def test_a_loose_request_under_a_weighed_sky_casts_fewer_sky_rays_first(monkeypa
 
 def test_a_bright_sky_lit_plan_weighs_the_sky_s_two_estimates():
     """The Cornell box under a sky at r = 0.9 and 5e-3: the sky's two estimates are weighed at every solve
-    (``Plan.sky_rows``), which cancels most of the visibility rays' error. Measured: 0.056 % from Mitsuba in 212
-    leaves and 1.7 s, with 3 visibility rays per side and 16² sky directions, estimated 0.29 % (the escape count
-    alone: 0.14 % in 236 leaves and 8.8 s, after growing the rays to 12 per side and 26²). ``apply`` to other
+    (``Plan.sky_rows``), which cancels most of the visibility rays' error. Measured: 0.062 % from Mitsuba in 200
+    leaves and 0.8 s, with 3 visibility rays per side and the open part from the opening, estimated 0.40 % (from 16²
+    escaping directions: 0.056 % in 212 leaves and 1.7 s; the escape count alone: 0.14 % in 236 leaves and 8.8 s,
+    after growing the rays to 12 per side and 26²). ``apply`` to other
     reflectances weighs again for them (:func:`solve_moments_sky` on the plan's moments). At r = 0.2 (a weight of
     at most 1/4) the escape count alone is kept."""
     from torch_interreflect.solver import solve_moments_sky
@@ -204,7 +205,7 @@ def test_a_bright_sky_lit_plan_weighs_the_sky_s_two_estimates():
     rep = p.report
     actual = float(_rel(p.apply(r, level).irradiance[:, 0], reference).square().mean().sqrt())
     assert rep.reached and rep.leaves <= 250 and all("visibility_samples" not in h for h in rep.history)
-    assert actual <= 6e-4 and actual <= rep.estimated <= 5e-3
+    assert actual <= 8e-4 and actual <= rep.estimated <= 5e-3
     other = torch.linspace(0.3, 0.8, scene.num_facets, dtype=D)
     c = solve_moments_sky(p.form_factors, other[p.leaf_user], p.light_factor, p.sky_rows, ONE,  # type: ignore[arg-type]
                           tol=p.solver_tol, method=p.method)

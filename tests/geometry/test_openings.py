@@ -39,3 +39,18 @@ def test_no_openings_where_none_can_be_told():
     floor = [[0.0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]]
     half_wall = [[0.0, 0, 0], [0, 0.5, 0], [0, 0.5, 1], [0, 0, 1]]  # covers half of the hull's face x = 0
     assert openings(ti.Scene.from_polygons(torch.tensor([floor, half_wall], dtype=torch.float64))) is None
+
+
+def test_facing_out_marks_the_back_of_a_cabinet_against_a_wall():
+    """The open room: the cabinet's back stands on the wall x = 4 and faces out of the room; nothing else does."""
+    from torch_interreflect.geometry.openings import facing_out
+
+    room = ti.scenes.room(1.0, lamp=False, ceiling=False, dtype=torch.float64)
+    out = facing_out(room)
+    assert int(out.sum()) >= 1
+    x_axis = torch.tensor([1.0, 0.0, 0.0], dtype=torch.float64)
+    assert torch.allclose(room.normals[out], x_axis.expand(int(out.sum()), 3), atol=1e-12)
+    assert torch.allclose(room.centroids[out][:, 0], torch.full((int(out.sum()),), 4.0, dtype=torch.float64))
+    names = [room.material_names[int(m)] for m in room.material[out]]
+    assert set(names) == {"cabinet"}
+    assert not bool(facing_out(ti.scenes.v_groove(30.0, dtype=torch.float64)).any())

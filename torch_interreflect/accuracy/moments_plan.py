@@ -41,6 +41,9 @@ away after it measured; on the Cornell box under a sky at 5e-3 the planner took 
 r = 0.2, against 18 s and 18 s with the replicas, for errors from Mitsuba of 0.16 % / 0.30 % against
 0.15 % / 0.22 %.)
 
+Where the scene's openings can be told, the sky's open part comes from them (``sky_rays(..., openings=True)``;
+the Cornell box at 1e-2 … 1e-3, r = 0.9 / 0.2: 0.65–7.9 s / 1.1–4.1 s, against 1.5–19 s / 1.8–107 s with the
+escaping rays, which warned at 1e-3 and r = 0.2).
 Under a sky, where a leaf's open part is counted from escaping rays, the same rays also give it as one minus the
 moments' row sums (:func:`~torch_interreflect.light_moments.sky_estimates`), and every solve weighs the two per leaf
 (:func:`~torch_interreflect.solver.solve_moments_sky`): the weight cancels the visibility rays' error where the
@@ -120,18 +123,14 @@ Q_LINEAR = 0.3
 
 
 #: The estimate of a user facet's error where the light is rough (``halving``): this times the change of its output
-#: when its leaves were last split in four (and at least this times its change when a neighbour's were): the
-#: error falling at least to a third with the leaves' size (order 2, Richardson's ``1 / (2² − 1)``), with a margin
-#: of 1.5. On the accuracy benchmark's 12 sky-lit cases (the Cornell box at 1e-2 … 1e-3 and the open room at 1e-2
-#: and 5e-3, r = 0.9 and 0.2, 200–1,448 leaves) the error against Mitsuba is 0.18–0.84 of the whole estimate with
-#: 0.5, and no request is missed without a warning; with 1 (first-order Richardson, the value before; the
-#: benchmark's run before) the same cases took 1.2× the time in all (485 s against 416 s; r = 0.9 / 0.2: the
-#: Cornell box at 1e-2 4.4 s / 1.9 s against 1.4 s / 1.6 s, for 0.064 % / 0.26 % against 0.44 % / 0.30 %; at 2e-3
-#: 129 s / 96 s against 47 s / 26 s); only at 1e-3,
-#: where both warn, is 0.5 slower (146 s / 129 s against 69 s / 83 s: its discretisation fits, so the rays grow
-#: to their most). (An older planner, before the replicas, had stopped the Cornell box at r = 0.2 and 2e-3 with
-#: 0.6 at an estimated 0.20 % for 0.29 %; this one stops at 440 leaves, estimated 0.18 %, for 0.089 %.)
-Q_HALVING = 0.5
+#: when its leaves were last split in four (and at least this times its change when a neighbour's were): the error
+#: falling as the leaves' size to the power 1.4 (Richardson's ``1 / (2^1.4 − 1)``), the order fitted on the Cornell
+#: box under a sky at r = 0.2 (the accuracy benchmark's finer solutions). With the sky from the openings the ray-cast
+#: parts no longer hide a shortfall: at 0.5 (order 1.6) the Cornell box at r = 0.2 and 1e-2 / 5e-3 was 0.40 % / 0.40 %
+#: from Mitsuba, estimated 0.37 % / 0.37 %; at 0.65 0.40 % / 0.36 %, estimated 0.45 % / 0.39 %, in 1.3 s each, and
+#: 0.084 % / 0.10 % at 2e-3 / 1e-3 (4.7 s / 11 s; 3.0 s / 4.1 s at 0.5). r = 0.9: 0.059–0.089 % at 1e-2 … 2e-3 in
+#: 0.7–1.1 s either way; at 1e-3 it warns (estimated 0.109 %, actual 0.080 %, 8.4 s).
+Q_HALVING = 0.65
 
 #: Share of the request left to the discretisation where the light is rough (``halving``): the rest goes to the
 #: ray-cast parts, which are large there (the Cornell box and the room at 5e-3: 24 s and 68 s with 0.7, against
@@ -250,7 +249,8 @@ def _level(pb: Problem, leaves: Leaves, share: float, seed: int = 0, sky_samples
     is_sun = sun_direction(pb.light, pb.F) is not None  # decided on the user's facets, not the leaves' count
     if sky is None and _is_sky(pb):
         sky_samples = _sky_start(pb) if sky_samples is None else sky_samples
-        sky = sky_rays(leaves.scene, K, samples=sky_samples, points=sky_points(sky_samples), rows=_weighed(pb))
+        sky = sky_rays(leaves.scene, K, samples=sky_samples, points=sky_points(sky_samples), rows=_weighed(pb),
+                       openings=True)
     if light is None:
         g, rough_leaf = light_moments(leaves.scene, K, leaf_light(pb.light, leaves.user, pb.F), rough=True,
                                       direction=is_sun, sky=sky)  # type: ignore[misc]
@@ -420,7 +420,8 @@ def _replicas(pb: Problem, leaves: Leaves, lv: _Level, share: float, vis: int, s
     parts[0] = relative_change(x_b, lv.x).cpu() / REPLICA_MARGIN
     sky_b = None
     if lv.sky is not None and (lv.sky.escape_ids.numel() or lv.sky.back_ids.numel()):
-        sky_b = sky_rays(leaves.scene, lv.full, samples=sky, points=sky_points(sky), seed=seed, rows=_weighed(pb))
+        sky_b = sky_rays(leaves.scene, lv.full, samples=sky, points=sky_points(sky), seed=seed, rows=_weighed(pb),
+                         openings=True)
         x_b = _level(pb, leaves, share, degree=lv.degree, moments=lv.full, sky=sky_b, light=lv.light).x
         cost[1] = sky_cost(sky_b, sky)
         parts[1] = relative_change(x_b, lv.x).cpu() / REPLICA_MARGIN

@@ -83,7 +83,10 @@ FIRST_HIT_FACTOR = 1.8
 def sky_cost(sky: SkyRays, samples: int) -> float:
     """Modelled seconds of the sky's replica ``sky`` cast at ``samples`` directions per axis (and :func:`sky_points`
     points per axis) on each of its leaves (:data:`SKY_RAY_SECONDS`; its escape leaves :data:`FIRST_HIT_FACTOR` times
-    that where they were cast with ``rows=True``)."""
+    that where they were cast with ``rows=True``). From the scene's openings (``sky.opening_rays``), the rays those
+    cast, as the square of ``samples``."""
+    if sky.opening_rays is not None:
+        return SKY_RAY_SECONDS * sky.opening_rays * samples**2
     escape = sky.escape_ids.numel() * (FIRST_HIT_FACTOR if sky.escape_back is not None else 1.0)
     return SKY_RAY_SECONDS * (escape + sky.back_ids.numel()) * samples**2 * sky_points(samples) ** 2
 

@@ -32,7 +32,9 @@ its share:
   Monte Carlo estimates with the same rays per leaf at every level, so refinement does not lower their error. It
   is measured once, on the user's facets, by casting the rays again with fewer directions (the difference of two
   estimates); it has no share of its own, so when it is large the target is reported not reached (with an
-  ``AccuracyWarning`` that names it) instead of being missed silently (the Cornell box under a sky).
+  ``AccuracyWarning`` that names it) instead of being missed silently (the Cornell box under a sky). On the
+  quadratic basis, where the scene's openings can be told (the faces of its convex hull no facet covers), the open
+  part comes from them instead (:func:`~torch_interreflect.sky_openings.sky_through_openings`): far less noisy.
 - **Wavelengths** (camera RGB only): the interreflection gain ``h = E / S`` (``S`` the illuminant) is solved on a
   nested subset of the grid and interpolated linearly in between; the coarsest subset whose RGB error, measured
   on the user's facets against the full grid, is within its share is used for all the work.

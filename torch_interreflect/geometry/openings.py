@@ -9,13 +9,15 @@ faces no facet covers: :func:`openings` returns them as facets that face into th
 
 from __future__ import annotations
 
+import contextlib
+
 import numpy as np
 import torch
 
 from ._polygon import plane_eps
 from .scene import Scene
 
-__all__ = ["COVERED", "openings"]
+__all__ = ["COVERED", "facing_out", "openings"]
 
 #: A hull face counts as covered where the coplanar facets' area is at least this share of its own, and as open
 #: where it is at most ``1 − COVERED``; anything between is a partly covered face (:func:`openings` returns None).
@@ -131,3 +133,27 @@ def openings(scene: Scene) -> Scene | None:
     if not parts:
         return None
     return parts[0] if len(parts) == 1 else Scene.concatenate(parts)
+
+
+def facing_out(scene: Scene) -> torch.Tensor:
+    """Which facets have nothing of the scene in front of them: their plane supports the scene (a cabinet's back
+    against the wall of a room, facing out). Nothing can block their view, so a sky fills all of it; the
+    openings do not see them (rays from there leave through the face they lie on).
+
+    Returns:
+        A mask ``[F]`` (bool, CPU).
+
+    Example:
+        >>> import torch, torch_interreflect as ti
+        >>> from torch_interreflect.geometry.openings import facing_out
+        >>> bool(facing_out(ti.scenes.cornell_box(light=False, dtype=torch.float64)).any())   # all face inward
+        False
+    """
+    from scipy.spatial import ConvexHull, QhullError
+
+    sc = scene.detach().to(torch.float64).to("cpu")
+    points = sc.corners.reshape(-1, 3)
+    with contextlib.suppress(QhullError, ValueError):  # a plane's farthest point is a hull vertex
+        points = points[torch.from_numpy(ConvexHull(points.numpy()).vertices)]
+    ahead = ((points[None] - sc.centroids[:, None]) * sc.normals[:, None]).sum(-1).amax(1)
+    return ahead <= plane_eps(sc)
