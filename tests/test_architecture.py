@@ -128,7 +128,7 @@ STAGES = [
     ("errors", "_checks", "_unique", "_sparse", "_version", "_deprecation"),
     ("geometry",),
     ("formfactors",),
-    ("lights", "light_moments", "sky_parts", "spectral"),
+    ("lights", "light_moments", "sky_openings", "sky_parts", "spectral"),
     ("solver",),
     ("camera",),
     ("accuracy",),

@@ -63,7 +63,7 @@ def test_a_float32_scene_gives_the_same_light_in_float64():
     g = sky_through_openings(scene, 2, visibility_samples=4)
     g32 = sky_through_openings(scene.to(torch.float32), 2, visibility_samples=4)
     assert g32.dtype == torch.float64
-    assert float((g32 - g).abs().max()) < 1e-3 * float(g.abs().max())
+    assert float((g32 - g).abs().max()) < 3e-4 * float(g.abs().max())
 
 
 def test_sky_rays_take_the_openings_where_they_are_told():

@@ -195,6 +195,9 @@ def _through_openings(sc: Scene, K: MomentFormFactors, maybe_back: Tensor, sampl
     if got is None:
         return None
     g, rays = got  # type: ignore[misc]
+    occ = K.info.get("occluded_facets")
+    if rays == 0 and not bool(maybe_back.any()) and not (isinstance(occ, Tensor) and bool(occ.any())):
+        return None  # nothing blocks and no back is in view: the moments' rows are as exact, with no rays
     F = sc.num_facets
     escape_back = None
     if rows:
@@ -204,6 +207,7 @@ def _through_openings(sc: Scene, K: MomentFormFactors, maybe_back: Tensor, sampl
             n = max(2, round(samples * OPENING_BACK_SAMPLES))
             h = hemisphere_point_fractions(sc, ids, samples=n, points=points, escape=False, seed=seed)
             escape_back[ids] = _project(K, ids, h["points"], h["weights"], h["back"])
+            rays += ids.numel() * n * n * points * points  # for the cost model, as the openings' rays
     empty = torch.zeros(0, dtype=torch.int64)
     return SkyRays(torch.arange(F), g / math.pi, empty, torch.zeros(0, K.size, dtype=torch.float64), escape_back,
                    rays / samples**2)

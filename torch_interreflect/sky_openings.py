@@ -45,8 +45,8 @@ def sky_through_openings(scene: Scene, degree: int = 2, *, quadrature_tol: float
 
     Returns:
         ``g`` (float64, CPU) (and the rays cast, with ``with_rays``), or None where the openings cannot be told from
-        the convex hull (:func:`~.geometry.openings.openings`: a hull face partly covered, a flat or a closed scene):
-        use the escaping rays there.
+        the convex hull (:func:`~.geometry.openings.openings`: a hull face partly covered, facets of two planes along
+        an opening's edge, a flat or a closed scene): use the escaping rays there.
 
     Raises:
         ValueRangeError: a bad ``degree``, ``quadrature_tol`` or ``visibility_samples``.

@@ -54,3 +54,27 @@ def test_facing_out_marks_the_back_of_a_cabinet_against_a_wall():
     names = [room.material_names[int(m)] for m in room.material[out]]
     assert set(names) == {"cabinet"}
     assert not bool(facing_out(ti.scenes.v_groove(30.0, dtype=torch.float64)).any())
+
+
+def test_a_two_sided_panel_covers_its_part_of_a_hull_face_once():
+    """A panel of two facets back to back over half of the hull's face x = 0: the face is half covered (the two
+    sides do not add up to a whole face), so the openings cannot be told."""
+    floor = [[0.0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]]
+    front = [[0.0, 0, 0], [0, 0.5, 0], [0, 0.5, 1], [0, 0, 1]]
+    back = front[::-1]
+    scene = ti.Scene.from_polygons(torch.tensor([floor, front, back], dtype=torch.float64))
+    assert openings(scene) is None
+
+
+def test_a_float32_scene_has_the_openings_of_the_float64_one():
+    """A V-groove turned about an oblique axis (its plates slanted in every coordinate), float32 against float64:
+    the corners' rounding stays within the tolerance of a hull face (:data:`ON_FACE`)."""
+    groove = ti.scenes.v_groove(40.0, divisions=4, dtype=torch.float64)
+    axis = torch.tensor([1.0, 2.0, 3.0], dtype=torch.float64) / 14**0.5
+    k = torch.tensor([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]], dtype=torch.float64)
+    rot = torch.linalg.matrix_exp(0.7 * k)
+    turned = ti.Scene.from_polygons(groove.corners @ rot.T)
+    o64 = openings(turned)
+    o32 = openings(turned.to(torch.float32))
+    assert o64 is not None and o32 is not None and o64.num_facets == o32.num_facets == 3
+    assert torch.allclose(o32.areas.double().sort().values, o64.areas.sort().values, rtol=1e-5, atol=0)

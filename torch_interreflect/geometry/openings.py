@@ -4,7 +4,7 @@ Every ray that leaves a scene crosses the boundary of its convex hull once, on t
 hull lies under facets of the scene (a wall on the hull), the ray is stopped there; where no facet lies in it, the
 ray escapes. So the part of the sky a point sees is the form factor, with occlusion, from the point to the hull
 faces no facet covers: :func:`openings` returns them as facets that face into the scene, for
-:func:`torch_interreflect.light_moments.sky_through_openings`.
+:func:`torch_interreflect.sky_openings.sky_through_openings`.
 """
 
 from __future__ import annotations
@@ -14,19 +14,25 @@ import contextlib
 import numpy as np
 import torch
 
-from ._polygon import plane_eps
+from ..errors import GeometryError
+from ._polygon import plane_eps, scene_size
 from .scene import Scene
 
-__all__ = ["COVERED", "facing_out", "openings"]
+__all__ = ["COVERED", "ON_FACE", "facing_out", "openings"]
 
 #: A hull face counts as covered where the coplanar facets' area is at least this share of its own, and as open
 #: where it is at most ``1 − COVERED``; anything between is a partly covered face (:func:`openings` returns None).
 COVERED = 1.0 - 1e-6
 
+#: Distance under which a point counts as on a hull face, relative to the scene's size: float32's rounding of the
+#: corners (the scene may come in float32 and be converted), whatever dtype the computation is in.
+ON_FACE = 2e-6
+
 
 def _faces(points: np.ndarray, eps: float) -> list[tuple[np.ndarray, float, np.ndarray]] | None:
     """The hull's faces as ``(outward unit normal [3], offset d with n·x + d = 0, corners [k, 3] in order)``;
-    ``None`` where the points span no volume. Coplanar hull triangles (within ``eps``) are merged into one face."""
+    ``None`` where the points span no volume. Hull triangles whose corners lie within ``eps`` of one's plane are one
+    face."""
     from scipy.spatial import ConvexHull, QhullError
 
     try:
@@ -34,12 +40,15 @@ def _faces(points: np.ndarray, eps: float) -> list[tuple[np.ndarray, float, np.n
     except (QhullError, ValueError):
         return None
     eq = hull.equations
+    tri = points[hull.simplices]
+    size = np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
     group = np.full(len(eq), -1)
     faces = []
-    for s in range(len(eq)):
+    for s in np.argsort(-size, kind="stable"):  # each face's plane from its largest triangle, not a sliver's
         if group[s] >= 0:
             continue
-        same = (group < 0) & (np.abs(eq[:, :3] @ eq[s, :3] - 1.0) < 1e-9) & (np.abs(eq[:, 3] - eq[s, 3]) < eps)
+        far = np.abs(tri @ eq[s, :3] + eq[s, 3]).max(1)  # each triangle's corners off this plane
+        same = (group < 0) & (far < eps) & (eq[:, :3] @ eq[s, :3] > 0.5)  # float noise splits a face in slivers
         group[same] = len(faces)
         n, d = eq[s, :3], float(eq[s, 3])
         corners = np.unique(points[hull.simplices[same].reshape(-1)], axis=0)
@@ -50,6 +59,14 @@ def _faces(points: np.ndarray, eps: float) -> list[tuple[np.ndarray, float, np.n
         order = np.argsort(np.arctan2((corners - centre) @ t2, (corners - centre) @ t1))  # counter-clockwise about n
         faces.append((n, d, corners[order]))
     return faces
+
+
+def _corners_only(polygon: np.ndarray, eps: float) -> np.ndarray:
+    """``polygon [k, 3]`` without the points on its edges (where the hull keeps points along a straight edge)."""
+    prev, nxt = np.roll(polygon, 1, axis=0), np.roll(polygon, -1, axis=0)
+    bend = np.linalg.norm(np.cross(polygon - prev, nxt - polygon), axis=1)
+    span = np.linalg.norm(nxt - prev, axis=1)
+    return polygon[bend > eps * np.maximum(span, 1e-300)]
 
 
 def _area(polygon: np.ndarray) -> float:
@@ -95,7 +112,8 @@ def openings(scene: Scene) -> Scene | None:
 
     Returns:
         The openings as a :class:`Scene` in the scene's dtype (on the CPU), or None where there is none (a closed
-        scene) or they cannot be told from the hull: a hull face only partly covered, an edge of an opening
+        scene) or they cannot be told from the hull: a hull face only partly covered (or by coplanar facets that
+        overlap), an edge of an opening
         along which facets of two planes meet (a W shape's valleys on its hull's floor), or a scene that spans no
         volume (flat).
 
@@ -108,7 +126,7 @@ def openings(scene: Scene) -> Scene | None:
         (1, 1.0)
     """
     sc = scene.detach().to(torch.float64).to("cpu")
-    eps = plane_eps(sc)
+    eps = max(plane_eps(scene), ON_FACE * scene_size(sc))
     points = sc.corners.reshape(-1, 3).numpy()
     faces = _faces(points, eps)
     if faces is None:
@@ -117,19 +135,25 @@ def openings(scene: Scene) -> Scene | None:
     tris, quads = [], []
     for n, d, corners in faces:
         inside = (np.abs(np.abs(normals @ n) - 1.0) < 1e-6) & (np.abs(centroids @ n + d) < eps)
-        share = float(areas[inside].sum()) / _area(corners)
-        if share >= COVERED:
+        out = normals @ n > 0  # facets back to back (a two-sided panel) cover the same part once
+        shares = [float(areas[inside & side].sum()) / _area(corners) for side in (out, ~out)]
+        if max(shares) > 2.0 - COVERED:  # coplanar facets overlap: the coverage cannot be told
+            return None
+        if max(shares) >= COVERED:
             continue
-        if share > 1.0 - COVERED:
+        if max(shares) > 1.0 - COVERED:
             return None
         if _wedged(corners, sc, eps):
             return None
-        inward = corners[::-1]
+        inward = _corners_only(corners[::-1], eps)
         if len(inward) == 4:
             quads.append(inward)
         else:  # a triangle, or a fan of them
             tris += [np.stack([inward[0], inward[k], inward[k + 1]]) for k in range(1, len(inward) - 1)]
-    parts = [Scene.from_polygons(torch.as_tensor(np.stack(p), dtype=scene.dtype)) for p in (quads, tris) if p]
+    try:
+        parts = [Scene.from_polygons(torch.as_tensor(np.stack(p), dtype=scene.dtype)) for p in (quads, tris) if p]
+    except GeometryError:  # a sliver of the hull too thin for a facet
+        return None
     if not parts:
         return None
     return parts[0] if len(parts) == 1 else Scene.concatenate(parts)
@@ -156,4 +180,4 @@ def facing_out(scene: Scene) -> torch.Tensor:
     with contextlib.suppress(QhullError, ValueError):  # a plane's farthest point is a hull vertex
         points = points[torch.from_numpy(ConvexHull(points.numpy()).vertices)]
     ahead = ((points[None] - sc.centroids[:, None]) * sc.normals[:, None]).sum(-1).amax(1)
-    return ahead <= plane_eps(sc)
+    return ahead <= max(plane_eps(scene), ON_FACE * scene_size(sc))
