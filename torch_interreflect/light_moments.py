@@ -175,8 +175,8 @@ def sky_rays(scene: Scene, form_factors: MomentFormFactors, *, backfaces: Litera
 #: Rays per side of an opening per sky direction per axis (``sky_rays(..., openings=True)``): the open part from
 #: the openings is far less noisy than from the escaping rays at the same count (the Cornell box, 122 pieces, r = 0.2:
 #: 0.29 % / 0.11 % from Mitsuba with 8² / 16² rays per outer point, against 0.27 % / 0.19 % from 8² / 16² escaping
-#: directions at 8² points, 0.15 m). ``render`` on the Cornell box at 1e-2 … 1e-3 (r = 0.9 and 0.2) took 0.65–7.9 s
-#: with 0.5 and 0.70–7.0 s with 0.75, against 1.2–3.3 s at 1e-2 … 2e-3 with 1.
+#: directions at 8² points, 0.15 m). ``render`` on the Cornell box at 1e-2 … 1e-3 (r = 0.9 and 0.2; ``Q_HALVING`` then
+#: 0.5) took 0.65–7.9 s with 0.5 and 0.70–7.0 s with 0.75, against 1.2–3.3 s at 1e-2 … 2e-3 with 1.
 OPENING_SAMPLES = 0.5
 
 #: Share of the sky's directions per axis that count the back coverage where the open part comes from the openings
