@@ -6,7 +6,6 @@ import pytest
 import torch
 
 import torch_interreflect as ti
-from torch_interreflect.errors import ShapeError
 from torch_interreflect.formfactors.moments import moment_form_factors
 from torch_interreflect.light_moments import light_moments
 from torch_interreflect.sky_openings import sky_through_openings
@@ -40,20 +39,6 @@ def test_occluded_it_agrees_with_the_escaping_rays():
 
 def test_none_where_the_openings_cannot_be_told():
     assert sky_through_openings(ti.scenes.w_shape(dtype=torch.float64)) is None
-
-
-def test_moments_across_a_mask_are_the_full_moments_on_those_pairs():
-    scene = ti.scenes.box_corner(divisions=2, dtype=torch.float64)
-    F = scene.num_facets
-    mask = torch.arange(F) < 4
-    full = moment_form_factors(scene, 1).matrix.reshape(F, 3, F, 3)
-    part = moment_form_factors(scene, 1, across=mask).matrix.reshape(F, 3, F, 3)
-    cross = mask[:, None] != mask[None, :]
-    assert torch.allclose(part[cross[:, None, :, None].expand_as(part)],
-                          full[cross[:, None, :, None].expand_as(full)], rtol=0, atol=1e-15)
-    assert float(part[~cross[:, None, :, None].expand_as(part)].abs().max()) == 0.0
-    with pytest.raises(ShapeError, match="across"):
-        moment_form_factors(scene, 1, across=mask[:-1])
 
 
 def test_a_float32_scene_gives_the_same_light_in_float64():

@@ -530,3 +530,17 @@ def test_moments_and_sky_keep_torch_threads_and_bits(threads, monkeypatch):
         torch.set_num_threads(prev)
     assert len(seen) >= 4 and set(seen) == {(1, threads)}  # the pairs' loops, the rays' set-up, the sky's rays
     assert K.info["occluded_pairs"] > 0 and torch.equal(K.matrix, K1.matrix) and torch.equal(g, g1)
+
+
+def test_moments_across_a_mask_are_the_full_moments_on_those_pairs():
+    scene = ti.scenes.box_corner(divisions=2, dtype=torch.float64)
+    F = scene.num_facets
+    mask = torch.arange(F) < 4
+    full = moment_form_factors(scene, 1).matrix.reshape(F, 3, F, 3)
+    part = moment_form_factors(scene, 1, across=mask).matrix.reshape(F, 3, F, 3)
+    cross = mask[:, None] != mask[None, :]
+    assert torch.allclose(part[cross[:, None, :, None].expand_as(part)],
+                          full[cross[:, None, :, None].expand_as(full)], rtol=0, atol=1e-15)
+    assert float(part[~cross[:, None, :, None].expand_as(part)].abs().max()) == 0.0
+    with pytest.raises(ShapeError, match="across"):
+        moment_form_factors(scene, 1, across=mask[:-1])
