@@ -3,7 +3,7 @@
 :func:`loops` gives the numba module of a stage (``"quadrature"``: the fused contour sums and their adjoints;
 ``"pairs"``: culling, classification and blocker tests of facet pairs; ``"visibility"``: rays and visible
 fractions of the fixed-grid visibility estimate; ``"shadows"``: the shadow edges of the visibility gradient;
-``"moments"``: the Galerkin moments on a polynomial basis), or
+``"moments"``: the Galerkin moments on a polynomial basis; ``"contacts"``: the contacts of facet pairs), or
 None when numba is missing or disabled
 (``TI_DISABLE_NUMBA=1``): callers then use their torch path. :func:`launch` runs one loop with
 :func:`~torch_interreflect._threads.work_threads` threads (torch's count, or the caller's inside
@@ -35,7 +35,7 @@ from .._threads import work_threads
 __all__ = ["dealt", "launch", "loops", "refresh_cache"]
 
 _MODULES = {"quadrature": "._numba_kernels", "pairs": "._numba_pairs", "visibility": "._numba_visibility",
-            "shadows": "._numba_shadows", "moments": "._numba_moments"}
+            "shadows": "._numba_shadows", "moments": "._numba_moments", "contacts": "._numba_contacts"}
 
 #: The file beside numba's cached kernels that records the digest of the sources they were compiled from.
 _STAMP = "ti_numba_sources.sha256"
@@ -84,8 +84,8 @@ def _fresh_cache() -> None:
 
 @cache
 def loops(stage: str = "quadrature") -> ModuleType | None:
-    """The numba module of ``stage`` (``"quadrature"``, ``"pairs"``, ``"visibility"``, ``"shadows"`` or
-    ``"moments"``), or None
+    """The numba module of ``stage`` (``"quadrature"``, ``"pairs"``, ``"visibility"``, ``"shadows"``, ``"moments"``
+    or ``"contacts"``), or None
     when numba is missing or disabled (``TI_DISABLE_NUMBA=1``)."""
     if stage not in _MODULES:
         raise ValueError(f"stage must be one of {sorted(_MODULES)}; got {stage!r}")

@@ -184,19 +184,31 @@ def corner_edge_contacts(sc: Scene, dom: Tensor, tgt: Tensor, cls: PairClasses) 
     if idx.numel() == 0:
         return dom, tgt, cls
     c = sc.corners.detach()
-    tol = 1e-7 * torch.maximum(sc.diameters[dom[idx]], sc.diameters[tgt[idx]]).detach()
-    over, s0, s1 = shared_segments(c[tgt[idx]], c[dom[idx]], tol)
-    wholly = (over & (s0 <= CUT_MIN) & (s1 >= 1.0 - CUT_MIN)).any(1)  # a target edge wholly on the domain's
-    turn, t = idx[wholly], tol[wholly]
+    kern = loops("contacts")
+    if kern is not None:  # the same per pair in a compiled loop
+        wholly = torch.zeros(idx.numel(), dtype=torch.bool)
+        first = torch.zeros(idx.numel(), dtype=torch.int64)
+        kern.corner_edge_turns(c.contiguous().numpy(), sc.diameters.detach().contiguous().numpy(), idx.numpy(),
+                               dom.contiguous().numpy(), tgt.contiguous().numpy(), CUT_MIN, wholly.numpy(),
+                               first.numpy())
+        first = first[wholly]
+    else:
+        tol = 1e-7 * torch.maximum(sc.diameters[dom[idx]], sc.diameters[tgt[idx]]).detach()
+        over, s0, s1 = shared_segments(c[tgt[idx]], c[dom[idx]], tol)
+        wholly = (over & (s0 <= CUT_MIN) & (s1 >= 1.0 - CUT_MIN)).any(1)  # a target edge wholly on the domain's
+    turn = idx[wholly]
     if turn.numel() == 0:
         return dom, tgt, cls
     dom, tgt = dom.clone(), tgt.clone()
     dom[turn], tgt[turn] = tgt[turn], dom[turn].clone()
     clip_t, clip_d, shift = cls.clip_t.clone(), cls.clip_d.clone(), cls.shift.clone()
     clip_t[turn], clip_d[turn] = cls.clip_d[turn], cls.clip_t[turn]
-    cd, ct = c[dom[turn]], c[tgt[turn]]
-    shared = ((cd[:, :, None, :] - ct[:, None, :, :]).norm(dim=-1) <= t[:, None, None]).any(-1)
-    shift[turn] = torch.argmax(shared.to(torch.int8), 1)  # the shared corner first, as classify_pairs puts it
+    if kern is None:
+        t = tol[wholly]
+        cd, ct = c[dom[turn]], c[tgt[turn]]
+        shared = ((cd[:, :, None, :] - ct[:, None, :, :]).norm(dim=-1) <= t[:, None, None]).any(-1)
+        first = torch.argmax(shared.to(torch.int8), 1)
+    shift[turn] = first  # the shared corner first, as classify_pairs puts it
     return dom, tgt, PairClasses(cls.order, cls.rho, cls.has_edge, cls.has_vertex, shift, clip_t, clip_d, cls.n_adj)
 
 
