@@ -243,6 +243,33 @@ def test_dense_cg_neumann_agree_and_float32() -> None:
         torch.testing.assert_close(e32.double(), ed, rtol=1e-4, atol=1e-5)
 
 
+@pytest.mark.parametrize("dtype", [torch.float32, F64])
+def test_cg_frozen_columns_keep_their_converged_values(monkeypatch, dtype: torch.dtype) -> None:
+    """CG keeps converged columns in its working set, frozen, until they are ``COMPACT_FRACTION`` of it: the result
+    is the same whether they are dropped at once (0), at half (the default) or only at the end, since a frozen
+    column's step is 0 (up to the rounding of products over more columns: measured 0.3 and 1.2 units of the last
+    place of the largest entry in float32 and float64), and columns from r = 0.05 to 0.95 (converging many iterations
+    apart) meet the dense solve within the error tolerance (measured 3.9e-7 and 6.0e-8 at tol 1e-6)."""
+    from torch_interreflect.solver import krylov
+
+    ff = closed_ring(64, dtype=dtype, seed=3)
+    g = torch.Generator().manual_seed(4)
+    r = (torch.linspace(0.05, 0.95, 40, dtype=F64)[:, None, None] * (0.9 + 0.1 * torch.rand(40, 64, 1, generator=g,
+                                                                                            dtype=F64))).to(dtype)
+    e0 = torch.rand(40, 64, 1, generator=g, dtype=F64).to(dtype)
+    out = {}
+    for frac in (0.0, 0.5, 1.01):
+        monkeypatch.setattr(krylov, "COMPACT_FRACTION", frac)
+        out[frac], info = solve_with_info(ff, r, e0, method="cg", tol=1e-6)
+        assert info.converged
+    eps = torch.finfo(dtype).eps
+    for frac in (0.5, 1.01):
+        assert float((out[frac] - out[0.0]).abs().max() / out[0.0].abs().max()) <= 4 * eps
+    ed = solve(ff.to(F64), r.double(), e0.double(), method="dense")
+    err = float(((out[0.5].double() - ed).norm(dim=-2) / ed.norm(dim=-2)).max())
+    assert err <= 1e-6
+
+
 def test_broadcast_shapes_and_grey() -> None:
     ff = random_reciprocal(5)
     r_grey = torch.rand(5, dtype=F64)
@@ -338,3 +365,18 @@ def test_info_and_radiance() -> None:
     torch.testing.assert_close(rad, 0.5 * e / torch.pi)
     with pytest.raises(ShapeError):
         radiance(e, torch.ones(10, 4, dtype=F64))
+
+
+def test_distinct_columns_counts_as_unique_does() -> None:
+    """The cost model's count of distinct reflectance columns (one projection per column) equals
+    ``torch.unique(dim=1)`` on repeated, grey and spectral columns, float32 and float64."""
+    from torch_interreflect.solver.method import distinct_columns
+
+    g = torch.Generator().manual_seed(0)
+    materials = torch.rand(5, 30, generator=g, dtype=F64)
+    for cols in (materials[torch.randint(0, 5, (100,), generator=g)].T,  # 100 columns of 5 kinds
+                 torch.rand(300, 64, generator=g, dtype=F64),  # all distinct
+                 torch.full((300, 7), 0.5, dtype=F64), torch.rand(4, 1, generator=g, dtype=F64)):
+        for dtype in (torch.float32, F64):
+            c = cols.to(dtype)
+            assert distinct_columns(c) == int(torch.unique(c, dim=1).shape[1])

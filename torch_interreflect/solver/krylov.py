@@ -119,6 +119,14 @@ def _at_threads(fn: Callable[[Tensor], Tensor], threads: int) -> Callable[[Tenso
     return call
 
 
+#: Converged columns stay in the working set, frozen (their step 0), until they are this fraction of it; then they
+#: are written out and dropped at once. Dropping each batch as it converged took 4 column gathers of every vector
+#: each time: on 100 reflectance draws of the Cornell box's 50 pieces (quadratic basis, 300 unknowns; the two CG
+#: solves of ``solve_moments_sky``) the median went from 12.3 to 11.0 ms in float32 and from 21.4 to 17.8 ms in
+#: float64 at 0.5 (0.75 and 1 measured alike, within noise; below 0.5 the gathers come back).
+COMPACT_FRACTION = 0.5
+
+
 def _cg(gmul: Callable[[Tensor], Tensor], s: Tensor, rhs: Tensor, tol: float | Tensor, max_iter: int,
         stats: Stats) -> Tensor:
     x = torch.zeros_like(rhs)
@@ -135,34 +143,40 @@ def _cg(gmul: Callable[[Tensor], Tensor], s: Tensor, rhs: Tensor, tol: float | T
     p = res.clone()
     xa = torch.zeros_like(res)
     rr = torch.linalg.vecdot(res, res, dim=0)
+    frozen = torch.zeros_like(rr, dtype=torch.bool)
     it = 0
     worst = 0.0
     while True:
-        done = rr <= thresh
+        done = (rr <= thresh) | frozen
         if it >= max_iter:
             failed = failed or not bool(done.all())
             done = torch.ones_like(done)
-        if bool(done.any()):
-            x[:, active[done]] = xa[:, done]
-            worst = max(worst, float((rr[done] / bn2[done]).max().sqrt()))
-            keep = ~done
-            if not bool(keep.any()):
+        new = done & ~frozen
+        if bool(new.any()):  # frozen from here: res and rr stay as they are now
+            worst = max(worst, float((rr[new] / bn2[new]).max().sqrt()))
+            frozen = done
+            n_done = int(frozen.sum())
+            if n_done == frozen.numel():
+                x[:, active] = xa
                 break
-            active, thresh, bn2, rr = active[keep], thresh[keep], bn2[keep], rr[keep]
-            sa, res, p, xa = sa[:, keep], res[:, keep], p[:, keep], xa[:, keep]
+            if n_done >= COMPACT_FRACTION * frozen.numel():
+                x[:, active[frozen]] = xa[:, frozen]
+                keep = ~frozen
+                active, thresh, bn2, rr, frozen = active[keep], thresh[keep], bn2[keep], rr[keep], frozen[keep]
+                sa, res, p, xa = sa[:, keep], res[:, keep], p[:, keep], xa[:, keep]
         ap = torch.addcmul(p, sa, gmul(sa * p), value=-1)
         pap = torch.linalg.vecdot(p, ap, dim=0)
-        if bool((pap <= 0).any()):
+        if bool(((pap <= 0) & ~frozen).any()):
             raise SingularSystemError(
                 "the interreflection system is singular or indefinite (conjugate-gradient breakdown, "
-                f"p·Ap = {float(pap.min()):.3g}): reflectance 1 in a closed scene, or form-factor rows "
+                f"p·Ap = {float(pap[~frozen].min()):.3g}): reflectance 1 in a closed scene, or form-factor rows "
                 "summing to more than 1?"
             )
-        alpha = rr / pap
+        alpha = (rr / pap).masked_fill_(frozen, 0.0)
         xa.addcmul_(p, alpha)
         res.addcmul_(ap, alpha, value=-1)
         rr_new = torch.linalg.vecdot(res, res, dim=0)
-        p.mul_(rr_new / rr).add_(res)
+        p.mul_((rr_new / rr).masked_fill_(frozen, 0.0)).add_(res)
         rr = rr_new
         it += 1
     stats.iterations = max(stats.iterations, it)

@@ -9,7 +9,8 @@ from torch import Tensor
 
 from .plan import SolvePlan
 
-__all__ = ["AUTO_COST", "DEFAULT_MAX_ITER", "DENSE_MAX_FACETS", "METHODS", "choose_method", "estimate_cg_iterations"]
+__all__ = ["AUTO_COST", "DEFAULT_MAX_ITER", "DENSE_MAX_FACETS", "METHODS", "choose_method", "distinct_columns",
+           "estimate_cg_iterations"]
 
 
 
@@ -67,6 +68,17 @@ def estimate_cg_iterations(rho: float, tol: float, size: int) -> int:
     return max(1, min(size, math.ceil(0.5 * math.sqrt(kappa) * math.log(2 / (tol * (1 - rho))))))
 
 
+def distinct_columns(r_cols: Tensor) -> int:
+    """How many distinct columns ``r_cols [F, N]`` holds (the dense method's factorisations), counted on one fixed
+    projection per column: two different columns that project alike would be counted once, a slip of the cost model
+    only. ``torch.unique(dim=1)`` took 0.2-0.45 ms on 100 columns of 300 rows, the projection 0.04 ms."""
+    n = int(r_cols.shape[1])
+    if n <= 1:
+        return n
+    w = torch.linspace(1.0, 2.0, r_cols.shape[0], dtype=torch.float64, device=r_cols.device).sqrt()
+    return int(torch.unique(w @ r_cols.detach().to(torch.float64)).numel())
+
+
 def choose_method(plan: SolvePlan, r_cols: Tensor, tol: float) -> str:
     """Pick ``dense`` or ``cg`` by the cost model :data:`AUTO_COST` (``neumann`` only when ``F`` is not
     reciprocal and a component is too large for ``dense``).
@@ -84,7 +96,7 @@ def choose_method(plan: SolvePlan, r_cols: Tensor, tol: float) -> str:
         return "cg"
     cost = AUTO_COST
     n = int(r_cols.shape[1])
-    k_cols = int(torch.unique(r_cols, dim=1).shape[1]) if n > 1 else 1
+    k_cols = distinct_columns(r_cols)
     rho = float(r_cols.detach().max()) * plan.max_row_sum
     gemm_rate = max(cost["gemm_min"], cost["gemm_peak"] * n / (n + cost["gemm_half"]))
     t_dense = t_cg = 0.0
