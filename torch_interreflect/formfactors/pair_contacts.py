@@ -107,7 +107,7 @@ def contacts(sc: Scene, dom: Tensor, tgt: Tensor, touch_edge: Tensor, touch_vert
     cut = torch.tensor([0.0, 1.0], dtype=torch.float64).expand(dom.numel(), 2).clone()
     if idx.numel() == 0:
         return dom, tgt, touch_edge, touch_vertex, shift, swapped, cut
-    kern = loops("contacts")
+    kern = loops("contacts") if sc.corners.dtype == torch.float64 and sc.corners.device.type == "cpu" else None
     if kern is not None:  # the same per pair in a compiled loop (on the 50-piece Cornell box 0.05 ms, not 1.7 ms)
         out = [t.clone().contiguous() for t in (dom, tgt, touch_edge, touch_vertex, shift)]
         kern.contacts(sc.corners.detach().contiguous().numpy(), sc.diameters.detach().contiguous().numpy(),

@@ -184,8 +184,8 @@ def corner_edge_contacts(sc: Scene, dom: Tensor, tgt: Tensor, cls: PairClasses) 
     if idx.numel() == 0:
         return dom, tgt, cls
     c = sc.corners.detach()
-    kern = loops("contacts")
-    if kern is not None:  # the same per pair in a compiled loop
+    kern = loops("contacts") if c.dtype == torch.float64 and c.device.type == "cpu" else None
+    if kern is not None:  # the same per pair in a compiled loop (float64 on the CPU, as the moments take it)
         wholly = torch.zeros(idx.numel(), dtype=torch.bool)
         first = torch.zeros(idx.numel(), dtype=torch.int64)
         kern.corner_edge_turns(c.contiguous().numpy(), sc.diameters.detach().contiguous().numpy(), idx.numpy(),

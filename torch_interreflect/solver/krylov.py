@@ -96,7 +96,8 @@ def cg(g: Tensor | Callable[[Tensor], Tensor], s: Tensor, rhs: Tensor, tol: floa
     """Conjugate gradients on ``(I − S G S) w = rhs`` for all columns at once, one GEMM/SpMM per iteration.
 
     ``g`` is a matrix or a product callable; ``tol`` the relative residual to reach, one number or one per column.
-    Converged columns are written out and dropped from the working set (so later products are narrower). On the
+    Converged columns are frozen (their step 0) and, once they are :data:`COMPACT_FRACTION` of the working set,
+    written out and dropped from it (so later products are narrower). On the
     CPU, small systems (at most :data:`~torch_interreflect._threads.SMALL_VECTOR_ELEMENTS` in ``rhs``) run the
     vector operations on one thread and the products on the caller's.
     """
@@ -159,7 +160,8 @@ def _cg(gmul: Callable[[Tensor], Tensor], s: Tensor, rhs: Tensor, tol: float | T
             if n_done == frozen.numel():
                 x[:, active] = xa
                 break
-            if n_done >= COMPACT_FRACTION * frozen.numel():
+            # (a column whose residual is not finite, float32 overflow, leaves at once: frozen, its p would spread NaN)
+            if n_done >= COMPACT_FRACTION * frozen.numel() or not bool(rr[new].isfinite().all()):
                 x[:, active[frozen]] = xa[:, frozen]
                 keep = ~frozen
                 active, thresh, bn2, rr, frozen = active[keep], thresh[keep], bn2[keep], rr[keep], frozen[keep]
