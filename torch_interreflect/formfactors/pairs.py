@@ -196,6 +196,9 @@ def corner_edge_contacts(sc: Scene, dom: Tensor, tgt: Tensor, cls: PairClasses) 
         tol = 1e-7 * torch.maximum(sc.diameters[dom[idx]], sc.diameters[tgt[idx]]).detach()
         over, s0, s1 = shared_segments(c[tgt[idx]], c[dom[idx]], tol)
         wholly = (over & (s0 <= CUT_MIN) & (s1 >= 1.0 - CUT_MIN)).any(1)  # a target edge wholly on the domain's
+        cd, ct = c[tgt[idx[wholly]]], c[dom[idx[wholly]]]  # the turned pairs' domain is the old target
+        shared = ((cd[:, :, None, :] - ct[:, None, :, :]).norm(dim=-1) <= tol[wholly][:, None, None]).any(-1)
+        first = torch.argmax(shared.to(torch.int8), 1)
     turn = idx[wholly]
     if turn.numel() == 0:
         return dom, tgt, cls
@@ -203,11 +206,6 @@ def corner_edge_contacts(sc: Scene, dom: Tensor, tgt: Tensor, cls: PairClasses) 
     dom[turn], tgt[turn] = tgt[turn], dom[turn].clone()
     clip_t, clip_d, shift = cls.clip_t.clone(), cls.clip_d.clone(), cls.shift.clone()
     clip_t[turn], clip_d[turn] = cls.clip_d[turn], cls.clip_t[turn]
-    if kern is None:
-        t = tol[wholly]
-        cd, ct = c[dom[turn]], c[tgt[turn]]
-        shared = ((cd[:, :, None, :] - ct[:, None, :, :]).norm(dim=-1) <= t[:, None, None]).any(-1)
-        first = torch.argmax(shared.to(torch.int8), 1)
     shift[turn] = first  # the shared corner first, as classify_pairs puts it
     return dom, tgt, PairClasses(cls.order, cls.rho, cls.has_edge, cls.has_vertex, shift, clip_t, clip_d, cls.n_adj)
 
