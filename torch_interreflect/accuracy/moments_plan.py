@@ -21,7 +21,12 @@ box under uniform light at 1e-3: estimated 0.14 %, actual 0.38 %). On such scene
 (:func:`~.moments_settings.smooth_light` false, or a rough leaf found by the light's own shadow points) the planner
 estimates by *halving* instead: the first level is solved, every leaf is split in four and solved again, and a user
 facet's estimate is :data:`Q_HALVING` times the change of its output when its leaves were last split; the facets
-carrying the excess are split again. On the
+carrying the excess are split again. The first split is skipped where the first level's a-priori estimate,
+:data:`~.moments_settings.Q_ROUGH` times the larger change between its degrees 0, 1 and 2, already meets the share and
+the degrees converge (:data:`~.moments_settings.Q_CONVERGED`): the open room under a sky at r = 0.9 and 1e-2, 194
+leaves in 1.1-1.3 s and 0.25 % from Mitsuba, against 776 leaves in 5.7-6.9 s and 0.10 % (same machine, one run each).
+A facet-by-facet use of that estimate (split only the facets carrying its excess) missed on the Cornell box at r = 0.2
+and 5e-3 (0.56 % from Mitsuba, estimated 0.38 %): the facets it left whole were off by more than it said. On the
 Cornell box under a sky at 1e-2 this reaches 0.44 % / 0.30 % from Mitsuba (r = 0.9 / 0.2) with 200 / 212 leaves in
 1.4 s / 1.6 s, estimated 0.82 % / 0.87 % (the constant basis took 4,448 leaves and 28 s for 0.30 % at r = 0.9, and
 warned at r = 0.2 with an actual 3.4 %); with the sky's two estimates weighed (below), 0.057 % in 1.3 s at r = 0.9,
@@ -79,7 +84,7 @@ from ..lights import sun_direction
 from ..solver.moments import solve_moments
 from ..solver.sky import solve_moments_sky
 from .leaves import Leaves, relative_change, rms, select, split, to_user
-from .moments_settings import kernel_part, solver_part
+from .moments_settings import Q_CONVERGED, Q_EST, Q_HALVING, Q_LINEAR, Q_ROUGH, kernel_part, solver_part
 from .ray_counts import (
     MAX_SKY_SAMPLES,
     MAX_VISIBILITY_SAMPLES,
@@ -104,33 +109,14 @@ def __getattr__(name: str) -> Any:
     return moved_attribute(__name__, name, _MOVED)
 
 
-__all__ = ["DEGREE", "HALVING_SHARE", "Q_EST", "Q_HALVING", "Q_LINEAR", "RAY_FIRST_SHARE", "REPLICA_MARGIN",
-           "WEIGH_REFLECTANCE", "MomentRefinement", "leaf_light", "moment_report", "refine_moments"]
+__all__ = ["DEGREE", "HALVING_SHARE", "Q_CONVERGED", "Q_EST", "Q_HALVING", "Q_LINEAR", "Q_ROUGH", "RAY_FIRST_SHARE",
+           "REPLICA_MARGIN", "WEIGH_REFLECTANCE", "MomentRefinement", "leaf_light", "moment_report", "refine_moments"]
 
 #: Degree of the basis the planner solves on.
 DEGREE = 2
 
 #: Largest reflectance from which the sky's two estimates are weighed (:func:`_weighed`).
 WEIGH_REFLECTANCE = 1 / 3
-
-#: The estimate of a user facet's error: this times the difference between its degree-2 and degree-1 outputs.
-Q_EST = 0.5
-
-#: The estimate of a degree-1 output: this times its difference from the degree-0 one. Measured on the benchmark's
-#: unoccluded scenes and the W shape (48 to 800 leaves), the degree-1 error is 0.05–0.15 of that difference (RMS).
-#: Where it meets the request the planner stops at degree 1 (half the moments' work, a solve 8 × cheaper).
-Q_LINEAR = 0.3
-
-
-#: The estimate of a user facet's error where the light is rough (``halving``): this times the change of its output
-#: when its leaves were last split in four (and at least this times its change when a neighbour's were): the error
-#: falling as the leaves' size to the power 1.4 (Richardson's ``1 / (2^1.4 − 1)``), the order fitted on the Cornell
-#: box under a sky at r = 0.2 (the accuracy benchmark's finer solutions). With the sky from the openings the ray-cast
-#: parts no longer hide a shortfall: at 0.5 (order 1.6) the Cornell box at r = 0.2 and 1e-2 / 5e-3 was 0.40 % / 0.40 %
-#: from Mitsuba, estimated 0.37 % / 0.37 %; at 0.65 0.40 % / 0.36 %, estimated 0.45 % / 0.39 %, in 1.3 s each, and
-#: 0.084 % / 0.10 % at 2e-3 / 1e-3 (4.7 s / 11 s; 3.0 s / 4.1 s at 0.5). r = 0.9: 0.059–0.089 % at 1e-2 … 2e-3 in
-#: 0.7–1.1 s either way; at 1e-3 it warns (estimated 0.109 %, actual 0.080 %, 8.4 s).
-Q_HALVING = 0.65
 
 #: Share of the request left to the discretisation where the light is rough (``halving``): the rest goes to the
 #: ray-cast parts, which are large there (the Cornell box and the room at 5e-3: 24 s and 68 s with 0.7, against
@@ -225,7 +211,7 @@ def _level(pb: Problem, leaves: Leaves, share: float, seed: int = 0, sky_samples
            visibility: int = VISIBILITY_SAMPLES, like: MomentFormFactors | None = None,
            degree: int | None = None, moments: MomentFormFactors | None = None,
            previous: MomentFormFactors | None = None, sky: SkyRays | None = None,
-           light: tuple[Tensor, Tensor] | None = None) -> _Level:
+           light: tuple[Tensor, Tensor] | None = None, rough_first: bool = False) -> _Level:
     """Moments and light on ``leaves``; the outputs of degree 1 and 0, and of degree 2 unless the degree-1 estimate
     ``Q_LINEAR |x1 − x0|`` is within ``share``. ``like``: moments of these leaves whose unoccluded pairs are reused
     (only the occluded pairs' rays are drawn again,
@@ -234,7 +220,11 @@ def _level(pb: Problem, leaves: Leaves, share: float, seed: int = 0, sky_samples
     directions alone). ``previous``: the moments of the leaves before their last split, made with the same settings:
     the pairs of two leaves kept by the split (``leaves.kept``) take their sums from there. ``sky``: the sky's
     ray-cast part already cast on these leaves (cast with ``sky_samples`` otherwise: :func:`_sky_start` when None).
-    ``light``: ``_Level.light`` of a level on these leaves, taken instead of computing the light again."""
+    ``light``: ``_Level.light`` of a level on these leaves, taken instead of computing the light again.
+    ``rough_first``: the first level of halving: degree 2 always, estimated a priori (``Q_ROUGH`` times the larger
+    change between the degrees; unknown, ``inf``, where they do not converge, ``Q_CONVERGED``). Otherwise, where the
+    degree-2 output is solved and the degrees do not converge, every user facet is marked rough (planned by
+    halving)."""
     t = time.perf_counter()
     if moments is not None:
         K = moments
@@ -288,10 +278,16 @@ def _level(pb: Problem, leaves: Leaves, share: float, seed: int = 0, sky_samples
             return level(Kd, x, torch.zeros(pb.F, dtype=torch.float64))
         K1, x1 = output(1)
         x0 = output(0)[1]
-        est1 = Q_LINEAR * relative_change(x1, x0)
-        if rms(est1) <= share:  # the linear basis already meets the share: no degree-2 solve
-            return level(K1, x1, est1)
+        d10 = relative_change(x1, x0)
+        if not rough_first and rms(Q_LINEAR * d10) <= share:  # the linear basis meets the share: no degree 2
+            return level(K1, x1, Q_LINEAR * d10)
         x2 = output(2)[1]
+        converged = rms(relative_change(x2, x1)) <= Q_CONVERGED * rms(d10)
+        if rough_first:  # the first level of halving: its a-priori estimate, unknown (inf) where it does not hold
+            est = Q_ROUGH * torch.maximum(d10, relative_change(x2, x1))
+            return level(K, x2, est if converged else torch.full_like(est, math.inf))
+        if not converged:  # the degrees' difference bounds nothing here: plan by halving (refine_moments)
+            rough.fill_(True)
         return level(K, x2, Q_EST * relative_change(x1, x2))
     finally:
         pb.seconds["solve"] += time.perf_counter() - t
@@ -329,7 +325,8 @@ def refine_moments(pb: Problem, *, max_unknowns: int, max_iterations: int, show:
         t_start: Start of the planning (for the history's seconds).
         halving: Estimate from the change of each user facet's output when its leaves are split
             (:data:`Q_HALVING`), not from the degrees' difference: where the light is rough
-            (:func:`~.moments_settings.smooth_light`). Every user facet is split at least once.
+            (:func:`~.moments_settings.smooth_light`). Every user facet is split at least once, unless the first
+            level's a-priori estimate already meets the share (:func:`_level`'s ``rough_first``).
         contact_split: ``split_at_contacts(pb.scene)`` already computed (the pieces, the first leaves, and their user
             facets); computed here when None.
     """
@@ -347,13 +344,19 @@ def refine_moments(pb: Problem, *, max_unknowns: int, max_iterations: int, show:
     bar = tqdm(total=max_iterations + 1, desc="render (quadratic basis)", disable=not show, leave=False)
     # halving: the error of a user facet is unknown (inf) until its leaves have been split once
     est = torch.full((pb.F,), math.inf, dtype=torch.float64)
-    lv = _level(pb, leaves, share, degree=DEGREE) if halving else None
+    lv = _level(pb, leaves, share, rough_first=True) if halving else None
+    if lv is not None and rms(lv.est) <= share:  # the a-priori estimate (Q_ROUGH) meets the share: no split
+        est = lv.est.cpu()
     previous: MomentFormFactors | None = None
     first: _Replicas | None = None  # the ray-cast parts at their first counts, measured once (smooth light)
     while True:
         if lv is None or not halving:
             lv = _level(pb, leaves, share, previous=previous)
             est = lv.est
+            if bool(lv.rough.any()):  # the caller plans again by halving (plan._plan_quadratic)
+                bar.close()
+                return MomentRefinement(leaves, lv.K, lv.g, est.cpu(), torch.zeros(pb.F, dtype=torch.float64), it,
+                                        "rough", history, lv.rough, lv.rows)
         disc = rms(est)
         history.append({"leaves": float(leaves.scene.num_facets), "estimated": disc,
                         "seconds": time.perf_counter() - t_start})

@@ -1,5 +1,6 @@
-"""Settings of the quadratic planner (:mod:`.moments_plan`): when the polynomial basis applies, the moments'
-quadrature tolerance and CG's for a request, and the allowances reported for the kernel and the solver."""
+"""Settings of the quadratic planner (:mod:`.moments_plan`): when the polynomial basis applies, the factors of its
+error estimates, the moments' quadrature tolerance and CG's for a request, and the allowances reported for the
+kernel and the solver."""
 
 from __future__ import annotations
 
@@ -17,6 +18,11 @@ from .refine import Problem
 __all__ = [
     "PROBE_ACCURACY",
     "PROBE_REFLECTANCE",
+    "Q_CONVERGED",
+    "Q_EST",
+    "Q_HALVING",
+    "Q_LINEAR",
+    "Q_ROUGH",
     "constant_probe_pays",
     "kernel_part",
     "moment_quadrature_tol",
@@ -25,6 +31,39 @@ __all__ = [
     "solver_part",
     "solver_tolerance",
 ]
+
+#: The estimate of a user facet's error: this times the difference between its degree-2 and degree-1 outputs.
+Q_EST = 0.5
+
+#: The estimate of a degree-1 output: this times its difference from the degree-0 one. Measured on the benchmark's
+#: unoccluded scenes and the W shape (48 to 800 leaves), the degree-1 error is 0.05–0.15 of that difference (RMS).
+#: Where it meets the request the planner stops at degree 1 (half the moments' work, a solve 8 × cheaper).
+Q_LINEAR = 0.3
+
+
+#: The estimate of a user facet's error where the light is rough (``halving``): this times the change of its output
+#: when its leaves were last split in four (and at least this times its change when a neighbour's were): the error
+#: falling as the leaves' size to the power 1.4 (Richardson's ``1 / (2^1.4 − 1)``), the order fitted on the Cornell
+#: box under a sky at r = 0.2 (the accuracy benchmark's finer solutions). With the sky from the openings the ray-cast
+#: parts no longer hide a shortfall: at 0.5 (order 1.6) the Cornell box at r = 0.2 and 1e-2 / 5e-3 was 0.40 % / 0.40 %
+#: from Mitsuba, estimated 0.37 % / 0.37 %; at 0.65 0.40 % / 0.36 %, estimated 0.45 % / 0.39 %, in 1.3 s each, and
+#: 0.084 % / 0.10 % at 2e-3 / 1e-3 (4.7 s / 11 s; 3.0 s / 4.1 s at 0.5). r = 0.9: 0.059–0.089 % at 1e-2 … 2e-3 in
+#: 0.7–1.1 s either way; at 1e-3 it warns (estimated 0.109 %, actual 0.080 %, 8.4 s).
+Q_HALVING = 0.65
+
+#: The estimate of the first level where the light is rough (``halving``), before any split: this times the change
+#: of a user facet's output from degree 0 to degree 1 on the same leaves. It bounds the degree-2 error where each
+#: degree at least halves the error (``e1 ≤ e0 / 2`` gives ``e2 ≤ e1 ≤ |x1 − x0|``).
+Q_ROUGH = 1.0
+
+#: Largest ratio of the degrees' changes, ``rms|x2 − x1| / rms|x1 − x0|``, at which their difference is taken to
+#: bound the error (:data:`Q_EST`, :data:`Q_ROUGH`): the estimates assume each degree cuts the error severalfold.
+#: Measured on the accuracy benchmark's scenes at their first level: 0.06–0.23 under a sun, 0.12–0.18 in the room and
+#: 0.08–0.15 in the Cornell box under a sky. Where a facet sees both faces of another whose plane crosses it (a wall
+#: hung 5 cm above a floor, under a sun or uniform light: a kink in the interreflected light inside the floor's leaf)
+#: it was 0.86–3.0, and the degree-2 error was 4–12 times ``Q_EST |x2 − x1|``; there the planner estimates by halving.
+Q_CONVERGED = 0.5
+
 
 #: Largest reflectance from which ``basis="auto"`` skips its first look on the constant basis. That look's estimate
 #: grows with the reflectance like the interreflected light: on the four held-out-style scenes of the accuracy
