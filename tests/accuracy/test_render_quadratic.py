@@ -116,6 +116,26 @@ def test_a_shadow_edge_is_planned_by_halving():
     assert actual <= rep.parts["discretisation"] <= rep.estimated <= 1e-2
 
 
+def test_a_shadow_edge_on_a_black_floor_is_split_before_it_is_estimated():
+    """Under a sun the shadow edge's quadrature error is in the light's moments, the same at every degree: at r = 0
+    the degrees agree (``x0 = x1 = x2``), so halving's a-priori estimate (``Q_ROUGH``) would be 0 (it was: the floor
+    9 % off, estimated 0). It is not taken where a sun's shadow edge crosses a leaf: every leaf is split first (the
+    first level's estimate unknown), and the estimate bounds the error. The wall, lit from behind, gets nothing."""
+    floor = [[-0.5, -0.5, 0.0], [0.5, -0.5, 0.0], [0.5, 0.5, 0.0], [-0.5, 0.5, 0.0]]
+    wall = [[0.0, -2.0, 0.05], [0.0, 2.0, 0.05], [0.0, 2.0, 3.0], [0.0, -2.0, 3.0]]
+    scene = ti.Scene.from_polygons(torch.tensor([floor, wall], dtype=D))
+    sun = torch.tensor([1.0, 0.0, -0.2], dtype=D)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", AccuracyWarning)
+        out = ti.render(scene, torch.zeros(2, dtype=D), sun, ONE, wavelengths=WL, accuracy=1e-2, basis="quadratic")
+    rep = out.report
+    assert rep.history[0]["estimated"] == float("inf") and rep.iterations >= 1
+    reference = _reference(scene, 0.0, sun)
+    assert float(reference[1]) == float(out.irradiance[1, 0]) == 0.0  # the wall: no error
+    actual = float(_rel(out.irradiance[0, 0], reference[0])) / 2**0.5  # RMS over the two facets
+    assert actual <= rep.estimated <= 1e-2
+
+
 def _stored(name: str) -> tuple[ti.Scene, dict, torch.Tensor]:
     """A scene of the benchmarks' stored converged Mitsuba references, its settings and its irradiance."""
     import json
@@ -461,7 +481,8 @@ def test_the_plan_splits_at_contacts_once_and_looks_for_blockers_only_with_conta
 def test_refinement_from_given_pieces_is_the_refinement_from_its_own_split():
     """``refine_moments(contact_split=...)``, the split ``plan`` shares with the light's test, gives the leaves and
     estimates of its own split, on a scene with contacts (the Cornell box's blocks on its floor) where the pieces are
-    new facets, refined by halving and then once more from the same pieces."""
+    new facets, refined by halving and then once more from the same pieces. At 1e-2 the pieces' a-priori estimate
+    (``Q_ROUGH``: 1.0 %) is above the share (0.7 %), so every piece is split once (at 5e-2 it would meet it)."""
     import sys
 
     from torch_interreflect.accuracy.moments_plan import refine_moments

@@ -21,12 +21,10 @@ box under uniform light at 1e-3: estimated 0.14 %, actual 0.38 %). On such scene
 (:func:`~.moments_settings.smooth_light` false, or a rough leaf found by the light's own shadow points) the planner
 estimates by *halving* instead: the first level is solved, every leaf is split in four and solved again, and a user
 facet's estimate is :data:`Q_HALVING` times the change of its output when its leaves were last split; the facets
-carrying the excess are split again. The first split is skipped where the first level's a-priori estimate,
-:data:`~.moments_settings.Q_ROUGH` times the larger change between its degrees 0, 1 and 2, already meets the share and
-the degrees converge (:data:`~.moments_settings.Q_CONVERGED`): the open room under a sky at r = 0.9 and 1e-2, 194
-leaves in 1.1-1.3 s and 0.25 % from Mitsuba, against 776 leaves in 5.7-6.9 s and 0.10 % (same machine, one run each).
-A facet-by-facet use of that estimate (split only the facets carrying its excess) missed on the Cornell box at r = 0.2
-and 5e-3 (0.56 % from Mitsuba, estimated 0.38 %): the facets it left whole were off by more than it said. On the
+carrying the excess are split again. No split where the first level's a-priori estimate (:data:`~.moments_settings.
+Q_ROUGH`) holds and meets the share: the open room under a sky at r = 0.9 and 1e-2, 194 leaves in 1.1-1.3 s, 0.25 %
+from Mitsuba (776 leaves and 5.7-6.9 s before). Splitting only the facets carrying its excess missed on the Cornell
+box (r = 0.2, 5e-3: 0.56 % from Mitsuba, estimated 0.38 %). On the
 Cornell box under a sky at 1e-2 this reaches 0.44 % / 0.30 % from Mitsuba (r = 0.9 / 0.2) with 200 / 212 leaves in
 1.4 s / 1.6 s, estimated 0.82 % / 0.87 % (the constant basis took 4,448 leaves and 28 s for 0.30 % at r = 0.9, and
 warned at r = 0.2 with an actual 3.4 %); with the sky's two estimates weighed (below), 0.057 % in 1.3 s at r = 0.9,
@@ -109,8 +107,8 @@ def __getattr__(name: str) -> Any:
     return moved_attribute(__name__, name, _MOVED)
 
 
-__all__ = ["DEGREE", "HALVING_SHARE", "Q_CONVERGED", "Q_EST", "Q_HALVING", "Q_LINEAR", "Q_ROUGH", "RAY_FIRST_SHARE",
-           "REPLICA_MARGIN", "WEIGH_REFLECTANCE", "MomentRefinement", "leaf_light", "moment_report", "refine_moments"]
+__all__ = ["DEGREE", "HALVING_SHARE", "RAY_FIRST_SHARE", "REPLICA_MARGIN", "WEIGH_REFLECTANCE", "MomentRefinement",
+           "leaf_light", "moment_report", "refine_moments"]
 
 #: Degree of the basis the planner solves on.
 DEGREE = 2
@@ -148,7 +146,8 @@ class MomentRefinement:
     Attributes:
         leaves: The solved leaves. K: Their moments. g: The light's moments ``[n, nb]``.
         est: Estimated discretisation error per user facet ``[F]``; ``ray``: the measured ray-cast part ``[F]``.
-        iterations: Refinement steps; ``reason``: why refinement stopped short (``""`` when it met its share).
+        iterations: Refinement steps; ``reason``: why refinement stopped short (``""`` when it met its share;
+            ``"rough"``: handed back at the first level, whose degrees do not converge, to be planned by halving).
         history: Per step: leaves, estimate, seconds. rough: User facets whose leaves see a rough light ``[F]``.
         rows: Under a sky, the other estimate of its light ``[n, nb]`` where the two differ (``None`` elsewhere).
     """
@@ -221,10 +220,9 @@ def _level(pb: Problem, leaves: Leaves, share: float, seed: int = 0, sky_samples
     the pairs of two leaves kept by the split (``leaves.kept``) take their sums from there. ``sky``: the sky's
     ray-cast part already cast on these leaves (cast with ``sky_samples`` otherwise: :func:`_sky_start` when None).
     ``light``: ``_Level.light`` of a level on these leaves, taken instead of computing the light again.
-    ``rough_first``: the first level of halving: degree 2 always, estimated a priori (``Q_ROUGH`` times the larger
-    change between the degrees; unknown, ``inf``, where they do not converge, ``Q_CONVERGED``). Otherwise, where the
-    degree-2 output is solved and the degrees do not converge, every user facet is marked rough (planned by
-    halving)."""
+    ``rough_first``: halving's first level: degree 2, estimated a priori (``Q_ROUGH``; ``inf`` where the degrees do
+    not converge or a sun's shadow edge crosses a leaf). Else a first level (no ``previous``, ``like``) whose degree 2
+    is solved and whose degrees do not converge (``Q_CONVERGED``) marks every user facet rough (planned by halving)."""
     t = time.perf_counter()
     if moments is not None:
         K = moments
@@ -285,8 +283,11 @@ def _level(pb: Problem, leaves: Leaves, share: float, seed: int = 0, sky_samples
         converged = rms(relative_change(x2, x1)) <= Q_CONVERGED * rms(d10)
         if rough_first:  # the first level of halving: its a-priori estimate, unknown (inf) where it does not hold
             est = Q_ROUGH * torch.maximum(d10, relative_change(x2, x1))
-            return level(K, x2, est if converged else torch.full_like(est, math.inf))
-        if not converged:  # the degrees' difference bounds nothing here: plan by halving (refine_moments)
+            # a sun's shadow edge across a leaf: its quadrature error is in the light's moments, the same at every
+            # degree, so no difference of degrees sees it
+            held = converged and not (is_sun and bool(rough_leaf.any()))
+            return level(K, x2, est if held else torch.full_like(est, math.inf))
+        if previous is None and like is None and not converged:  # measured at the first level: plan by halving
             rough.fill_(True)
         return level(K, x2, Q_EST * relative_change(x1, x2))
     finally:
@@ -342,7 +343,7 @@ def refine_moments(pb: Problem, *, max_unknowns: int, max_iterations: int, show:
     reason = ""
     it = 0
     bar = tqdm(total=max_iterations + 1, desc="render (quadratic basis)", disable=not show, leave=False)
-    # halving: the error of a user facet is unknown (inf) until its leaves have been split once
+    # halving: a user facet's error is unknown (inf) until its leaves are split, unless the a-priori estimate holds
     est = torch.full((pb.F,), math.inf, dtype=torch.float64)
     lv = _level(pb, leaves, share, rough_first=True) if halving else None
     if lv is not None and rms(lv.est) <= share:  # the a-priori estimate (Q_ROUGH) meets the share: no split

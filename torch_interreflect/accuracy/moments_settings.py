@@ -51,9 +51,12 @@ Q_LINEAR = 0.3
 #: 0.7–1.1 s either way; at 1e-3 it warns (estimated 0.109 %, actual 0.080 %, 8.4 s).
 Q_HALVING = 0.65
 
-#: The estimate of the first level where the light is rough (``halving``), before any split: this times the change
-#: of a user facet's output from degree 0 to degree 1 on the same leaves. It bounds the degree-2 error where each
-#: degree at least halves the error (``e1 ≤ e0 / 2`` gives ``e2 ≤ e1 ≤ |x1 − x0|``).
+#: The estimate of the first level where the light is rough (``halving``), before any split: this times the larger
+#: change of a user facet's output between degrees 0 and 1 and between 1 and 2 on the same leaves. It bounds the
+#: degree-2 error where each degree at least halves the error (``e1 ≤ e0 / 2`` gives ``e2 ≤ e1 ≤ |x1 − x0|``); it is
+#: taken only where the degrees converge (:data:`Q_CONVERGED`) and no sun's shadow edge crosses a leaf (the light's
+#: own quadrature error is the same at every degree). At the benchmark's sky-lit scenes' first level the degree-2
+#: error was 0.09–0.74 of it (RMS; the room 0.42 and 0.74, the Cornell box 0.09 and 0.26).
 Q_ROUGH = 1.0
 
 #: Largest ratio of the degrees' changes, ``rms|x2 − x1| / rms|x1 − x0|``, at which their difference is taken to

@@ -388,8 +388,8 @@ def _plan_quadratic(pb: Problem, light: Any, max_facets: int, max_iterations: in
     with compiled_work():  # the planner's torch glue on one thread; loops, rays and big solves on the caller's
         st = refine_moments(pb, halving=halving, **kw)
         if st.rough is not None and bool(st.rough.any()):
-            # a rough light that the first test missed (a shadow edge between its 4 × 4 rays): the degrees'
-            # difference does not bound the error there
+            # a rough light that the first test missed (a shadow edge between its 4 × 4 rays), or degrees that do not
+            # converge on the first level (Q_CONVERGED): the degrees' difference does not bound the error there
             st = refine_moments(pb, halving=True, **kw)
     n = st.leaves.scene.num_facets
     # each apply picks dense or CG by the solver's cost model for its own reflectance columns (many variants of a
