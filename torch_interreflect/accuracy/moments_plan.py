@@ -22,9 +22,9 @@ box under uniform light at 1e-3: estimated 0.14 %, actual 0.38 %). On such scene
 estimates by *halving* instead: the first level is solved, every leaf is split in four and solved again, and a user
 facet's estimate is :data:`Q_HALVING` times the change of its output when its leaves were last split; the facets
 carrying the excess are split again. No split where the first level's a-priori estimate (:data:`~.moments_settings.
-Q_ROUGH`) holds and meets the share: the open room under a sky at r = 0.9 and 1e-2, 194 leaves in 1.1-1.3 s, 0.25 %
-from Mitsuba (776 leaves and 5.7-6.9 s before). Splitting only the facets carrying its excess missed on the Cornell
-box (r = 0.2, 5e-3: 0.56 % from Mitsuba, estimated 0.38 %). On the
+Q_ROUGH`) holds and meets the share: the open room under a sky at r = 0.9 and 1e-2 / 5e-3, 194 leaves in 0.7 / 0.9 s,
+0.17 / 0.15 % from Mitsuba (776 leaves, 5.7 / 6.7 s before). Splitting only the facets carrying its excess missed on the
+Cornell box (r = 0.2, 5e-3: 0.56 % from Mitsuba, estimated 0.38 %). On the
 Cornell box under a sky at 1e-2 this reaches 0.44 % / 0.30 % from Mitsuba (r = 0.9 / 0.2) with 200 / 212 leaves in
 1.4 s / 1.6 s, estimated 0.82 % / 0.87 % (the constant basis took 4,448 leaves and 28 s for 0.30 % at r = 0.9, and
 warned at r = 0.2 with an actual 3.4 %); with the sky's two estimates weighed (below), 0.057 % in 1.3 s at r = 0.9,
