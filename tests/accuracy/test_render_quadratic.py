@@ -136,6 +136,20 @@ def test_a_shadow_edge_on_a_black_floor_is_split_before_it_is_estimated():
     assert actual <= rep.estimated <= 1e-2
 
 
+def test_the_rough_first_estimate_grows_where_a_facet_s_degrees_do_not_converge():
+    """``rough_estimate``: ``Q_ROUGH`` times the larger change where a facet's degrees converge (``q = d21 / d10 ≤
+    Q_CONVERGED``); the geometric tail ``m q / (1 − q)`` above it, at most ``Q_DIVERGING m`` (also where ``d10`` is 0
+    and ``d21`` is not); zero where nothing changes. Float64 whatever comes in."""
+    from torch_interreflect.accuracy.moments_settings import Q_CONVERGED, Q_DIVERGING, Q_ROUGH, rough_estimate
+
+    assert (Q_ROUGH, Q_CONVERGED, Q_DIVERGING) == (0.5, 0.5, 12.0)
+    d10 = torch.tensor([1.0, 1.0, 2.0, 1.0, 1.0, 0.0, 0.0], dtype=torch.float32)
+    d21 = torch.tensor([0.2, 0.5, 1.2, 0.95, 3.0, 0.0, 1e-3], dtype=torch.float32)
+    est = rough_estimate(d10, d21)
+    want = torch.tensor([0.5, 0.5, 2.0 * 0.6 / 0.4, 12.0 * 0.95, 36.0, 0.0, 12e-3], dtype=D)
+    assert est.dtype == D and torch.allclose(est, want, rtol=1e-6, atol=0)
+
+
 def _stored(name: str) -> tuple[ti.Scene, dict, torch.Tensor]:
     """A scene of the benchmarks' stored converged Mitsuba references, its settings and its irradiance."""
     import json

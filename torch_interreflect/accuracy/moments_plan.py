@@ -82,7 +82,7 @@ from ..lights import sun_direction
 from ..solver.moments import solve_moments
 from ..solver.sky import solve_moments_sky
 from .leaves import Leaves, relative_change, rms, select, split, to_user
-from .moments_settings import Q_CONVERGED, Q_EST, Q_HALVING, Q_LINEAR, Q_ROUGH, kernel_part, solver_part
+from .moments_settings import Q_CONVERGED, Q_EST, Q_HALVING, Q_LINEAR, kernel_part, rough_estimate, solver_part
 from .ray_counts import (
     MAX_SKY_SAMPLES,
     MAX_VISIBILITY_SAMPLES,
@@ -220,9 +220,9 @@ def _level(pb: Problem, leaves: Leaves, share: float, seed: int = 0, sky_samples
     the pairs of two leaves kept by the split (``leaves.kept``) take their sums from there. ``sky``: the sky's
     ray-cast part already cast on these leaves (cast with ``sky_samples`` otherwise: :func:`_sky_start` when None).
     ``light``: ``_Level.light`` of a level on these leaves, taken instead of computing the light again.
-    ``rough_first``: halving's first level: degree 2, estimated a priori (``Q_ROUGH``; ``inf`` where the degrees do
-    not converge or a sun's shadow edge crosses a leaf). Else a first level (no ``previous``, ``like``) whose degree 2
-    is solved and whose degrees do not converge (``Q_CONVERGED``) marks every user facet rough (planned by halving)."""
+    ``rough_first``: halving's first level: degree 2, estimated a priori (``rough_estimate``; ``inf`` where the
+    degrees do not converge or a sun's shadow edge crosses a leaf). Else a first level (no ``previous``, ``like``,
+    ``moments``) whose degrees do not converge (``Q_CONVERGED``) marks every user facet rough (planned by halving)."""
     t = time.perf_counter()
     if moments is not None:
         K = moments
@@ -282,12 +282,12 @@ def _level(pb: Problem, leaves: Leaves, share: float, seed: int = 0, sky_samples
         x2 = output(2)[1]
         converged = rms(relative_change(x2, x1)) <= Q_CONVERGED * rms(d10)
         if rough_first:  # the first level of halving: its a-priori estimate, unknown (inf) where it does not hold
-            est = Q_ROUGH * torch.maximum(d10, relative_change(x2, x1))
+            est = rough_estimate(d10, relative_change(x2, x1))
             # a sun's shadow edge across a leaf: its quadrature error is in the light's moments, the same at every
             # degree, so no difference of degrees sees it
             held = converged and not (is_sun and bool(rough_leaf.any()))
             return level(K, x2, est if held else torch.full_like(est, math.inf))
-        if previous is None and like is None and not converged:  # measured at the first level: plan by halving
+        if not converged and all(v is None for v in (previous, like, moments)):  # the first level: plan by halving
             rough.fill_(True)
         return level(K, x2, Q_EST * relative_change(x1, x2))
     finally:
@@ -346,7 +346,7 @@ def refine_moments(pb: Problem, *, max_unknowns: int, max_iterations: int, show:
     # halving: a user facet's error is unknown (inf) until its leaves are split, unless the a-priori estimate holds
     est = torch.full((pb.F,), math.inf, dtype=torch.float64)
     lv = _level(pb, leaves, share, rough_first=True) if halving else None
-    if lv is not None and rms(lv.est) <= share:  # the a-priori estimate (Q_ROUGH) meets the share: no split
+    if lv is not None and rms(lv.est) <= share:  # the a-priori estimate (rough_estimate) meets the share: no split
         est = lv.est.cpu()
     previous: MomentFormFactors | None = None
     first: _Replicas | None = None  # the ray-cast parts at their first counts, measured once (smooth light)

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 from typing import Any
 
+import torch
 from torch import Tensor
 
 from ..formfactors.compiled import loops
@@ -19,6 +20,7 @@ __all__ = [
     "PROBE_ACCURACY",
     "PROBE_REFLECTANCE",
     "Q_CONVERGED",
+    "Q_DIVERGING",
     "Q_EST",
     "Q_HALVING",
     "Q_LINEAR",
@@ -27,6 +29,7 @@ __all__ = [
     "kernel_part",
     "moment_quadrature_tol",
     "polynomial_allowed",
+    "rough_estimate",
     "smooth_light",
     "solver_part",
     "solver_tolerance",
@@ -63,6 +66,11 @@ Q_HALVING = 0.65
 #: the rays' own error is measured apart (the replicas). With 1.0 the room took 1.14 s at 1e-2 (r = 0.9), its rays
 #: grown; with 0.5, 0.71 s.
 Q_ROUGH = 0.5
+
+#: Most a user facet's a-priori estimate (:func:`rough_estimate`) takes of its larger change between degrees where its
+#: own degrees do not converge (``|x2 − x1| ≥ |x1 − x0|``): on the wall hung across a floor, where they do not, the
+#: degree-2 error was 4–12 times ``|x2 − x1|``.
+Q_DIVERGING = 12.0
 
 #: Largest ratio of the degrees' changes, ``rms|x2 − x1| / rms|x1 − x0|``, at which their difference is taken to
 #: bound the error (:data:`Q_EST`, :data:`Q_ROUGH`): the estimates assume each degree cuts the error severalfold.
@@ -164,3 +172,28 @@ def smooth_light(scene: Scene, light: Any, pieces: Scene | None = None) -> bool:
 def solver_tolerance(accuracy: float) -> float:
     """CG's tolerance on the quadratic basis (the dense solve is direct): far below the request."""
     return max(1e-10, 1e-3 * accuracy)
+
+
+def rough_estimate(d10: Tensor, d21: Tensor) -> Tensor:
+    """The a-priori estimate of a first level where the light is rough, per user facet: :data:`Q_ROUGH` times its
+    larger change between degrees ``m = max(d10, d21)`` where its own degrees converge (``q = d21 / d10 ≤``
+    :data:`Q_CONVERGED`), else the geometric tail ``m q / (1 − q)``, at most :data:`Q_DIVERGING` ``m``. The
+    scene-wide check (``rms d21 ≤ Q_CONVERGED rms d10``) is the caller's. On the open room under a sky (r = 0.2) two of
+    its 114 facets had ``q`` of 0.54 and 0.64 and degree-2 errors of 0.90 % and 0.42 % against ``Q_ROUGH m`` of 0.66 %
+    and 0.59 %; the tail gives 1.5 % and 2.1 %.
+
+    Args:
+        d10: Relative change of each user facet's output from degree 0 to 1 ``[F]``.
+        d21: The same from degree 1 to 2 ``[F]``.
+
+    Returns:
+        The estimate per user facet ``[F]`` (float64).
+
+    Shape:
+        - d10, d21, output: ``[F]``
+    """
+    d10, d21 = d10.double(), d21.double()
+    m = torch.maximum(d10, d21)
+    q = d21 / d10.clamp_min(torch.finfo(torch.float64).tiny)
+    tail = torch.where(q < 1, q / (1 - q).clamp_min(1 / Q_DIVERGING), torch.full_like(q, Q_DIVERGING))
+    return m * torch.where(q <= Q_CONVERGED, torch.full_like(q, Q_ROUGH), tail.clamp_max(Q_DIVERGING))
