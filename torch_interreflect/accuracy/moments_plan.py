@@ -21,11 +21,10 @@ box under uniform light at 1e-3: estimated 0.14 %, actual 0.38 %). On such scene
 (:func:`~.moments_settings.smooth_light` false, or a rough leaf found by the light's own shadow points) the planner
 estimates by *halving* instead: the first level is solved, every leaf is split in four and solved again, and a user
 facet's estimate is :data:`Q_HALVING` times the change of its output when its leaves were last split; the facets
-carrying the excess are split again. No split where the first level's a-priori estimate (:data:`~.moments_settings.
-Q_ROUGH`) holds and meets the share: the open room under a sky at r = 0.9 and 1e-2 / 5e-3, 194 leaves in 0.7 / 0.9 s,
-0.17 / 0.15 % from Mitsuba (776 leaves, 5.7 / 6.7 s before). Splitting only the facets carrying its excess missed on the
-Cornell box (r = 0.2, 5e-3: 0.56 % from Mitsuba, estimated 0.38 %). On the
-Cornell box under a sky at 1e-2 this reaches 0.44 % / 0.30 % from Mitsuba (r = 0.9 / 0.2) with 200 / 212 leaves in
+carrying the excess are split again. No split where the first level's a-priori estimate
+(:func:`~.moments_settings.rough_estimate`) holds and meets the share (the open room under a sky, see the README).
+A first level whose degrees do not converge (:data:`~.moments_settings.Q_CONVERGED`) is planned by halving too. On
+the Cornell box under a sky at 1e-2 this reaches 0.44 % / 0.30 % from Mitsuba (r = 0.9 / 0.2) with 200 / 212 leaves in
 1.4 s / 1.6 s, estimated 0.82 % / 0.87 % (the constant basis took 4,448 leaves and 28 s for 0.30 % at r = 0.9, and
 warned at r = 0.2 with an actual 3.4 %); with the sky's two estimates weighed (below), 0.057 % in 1.3 s at r = 0.9,
 and 0.26 % in 0.57 s with the looser first cast of the sky at 1e-2 (:func:`~.ray_counts.first_sky_samples`).
@@ -121,15 +120,12 @@ WEIGH_REFLECTANCE = 1 / 3
 #: 27 s and 114 s, both short of the request, with the 0.9 of smooth scenes; measured with ``Q_HALVING = 0.6``).
 HALVING_SHARE = 0.7
 
-#: Least share of the request that the discretisation is held to when the ray-cast parts, measured at their first
-#: counts on a level that met the discretisation's share, do not fit beside it (smooth light only, not ``halving``):
-#: the share is lowered to what they leave (with :data:`RAY_MARGIN`) and refinement goes on, rather than the rays
-#: growing, as long as that leaves at least this. Refining the few leaves that carry a smooth error is cheaper than
-#: more rays on every occluded pair: the W shape under a sun (r = 0.9) at 1e-3 took 0.92 s growing the rays from 3
-#: to 12 per side (162 leaves, 0.047 % from Mitsuba), and takes 0.52 s with the share lowered to 0.35 of the request
-#: (228 leaves, 3 rays per side, 0.064 %), both within their estimates. Lowering the share on every occluded scene
-#: instead was mixed where the light is rough (the Cornell box under a sky: 0.56–2.7× the time), so it is not done
-#: there.
+#: Least share of the request the discretisation is held to when the ray-cast parts, measured at their first counts
+#: on a level that met its share, do not fit beside it (smooth light only): the share is lowered to what they leave
+#: (with :data:`RAY_MARGIN`) and refinement goes on instead of the rays growing, while that leaves at least this.
+#: The W shape under a sun (r = 0.9) at 1e-3: 0.92 s growing the rays from 3 to 12 per side (162 leaves, 0.047 % from
+#: Mitsuba), 0.52 s with the share lowered (228 leaves, 0.064 %). Where the light is rough it was mixed (the Cornell
+#: box under a sky: 0.56–2.7× the time), so it is not done there.
 RAY_FIRST_SHARE = 0.3
 
 #: A ray-cast part is the change of the output that its replica makes, divided by this. Half the change is the RMS
@@ -277,7 +273,9 @@ def _level(pb: Problem, leaves: Leaves, share: float, seed: int = 0, sky_samples
         K1, x1 = output(1)
         x0 = output(0)[1]
         d10 = relative_change(x1, x0)
-        if not rough_first and rms(Q_LINEAR * d10) <= share:  # the linear basis meets the share: no degree 2
+        linear = not rough_first and rms(Q_LINEAR * d10) <= share  # the linear basis meets the share
+        first = all(v is None for v in (previous, like, moments))  # where the degrees' convergence is checked
+        if linear and not first:
             return level(K1, x1, Q_LINEAR * d10)
         x2 = output(2)[1]
         converged = rms(relative_change(x2, x1)) <= Q_CONVERGED * rms(d10)
@@ -287,8 +285,10 @@ def _level(pb: Problem, leaves: Leaves, share: float, seed: int = 0, sky_samples
             # degree, so no difference of degrees sees it
             held = converged and not (is_sun and bool(rough_leaf.any()))
             return level(K, x2, est if held else torch.full_like(est, math.inf))
-        if not converged and all(v is None for v in (previous, like, moments)):  # the first level: plan by halving
+        if first and not converged:  # plan by halving
             rough.fill_(True)
+        if linear:
+            return level(K1, x1, Q_LINEAR * d10)
         return level(K, x2, Q_EST * relative_change(x1, x2))
     finally:
         pb.seconds["solve"] += time.perf_counter() - t
