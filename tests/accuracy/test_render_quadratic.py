@@ -97,14 +97,19 @@ def test_a_bright_scene_skips_the_constant_first_look(groove, monkeypatch):
     assert constant_probe_pays(torch.tensor([[0.1, 0.7]], dtype=torch.float32), 1e-2)  # 0.69999999 in float32
 
 
+def _wall_over_floor(x: float) -> ti.Scene:
+    """A 1 m floor at z = 0 and a 4 m × 2.95 m wall in the plane x = ``x``, hung 5 cm above it (normal +x)."""
+    floor = [[-0.5, -0.5, 0.0], [0.5, -0.5, 0.0], [0.5, 0.5, 0.0], [-0.5, 0.5, 0.0]]
+    wall = [[x, -2.0, 0.05], [x, 2.0, 0.05], [x, 2.0, 3.0], [x, -2.0, 3.0]]
+    return ti.Scene.from_polygons(torch.tensor([floor, wall], dtype=D))
+
+
 def test_a_shadow_edge_is_planned_by_halving():
     """A wall 5 cm above the floor casts a shadow edge across it (at x = 0.25): the degrees' difference does not
     bound the error there, so the planner splits every leaf and estimates from the change (``Q_HALVING``); no
     warning, and the estimate bounds the error against degree 2 on ``subdivide(8)`` (where the edge is a leaf
     boundary)."""
-    floor = [[-0.5, -0.5, 0.0], [0.5, -0.5, 0.0], [0.5, 0.5, 0.0], [-0.5, 0.5, 0.0]]
-    wall = [[0.0, -2.0, 0.05], [0.0, 2.0, 0.05], [0.0, 2.0, 3.0], [0.0, -2.0, 3.0]]
-    scene = ti.Scene.from_polygons(torch.tensor([floor, wall], dtype=D))
+    scene = _wall_over_floor(0.0)
     sun = torch.tensor([1.0, 0.0, -0.2], dtype=D)
     with warnings.catch_warnings():
         warnings.simplefilter("error", AccuracyWarning)
@@ -121,9 +126,7 @@ def test_a_shadow_edge_on_a_black_floor_is_split_before_it_is_estimated():
     the degrees agree (``x0 = x1 = x2``), so halving's a-priori estimate (``Q_ROUGH``) would be 0 (it was: the floor
     9 % off, estimated 0). It is not taken where a sun's shadow edge crosses a leaf: every leaf is split first (the
     first level's estimate unknown), and the estimate bounds the error. The wall, lit from behind, gets nothing."""
-    floor = [[-0.5, -0.5, 0.0], [0.5, -0.5, 0.0], [0.5, 0.5, 0.0], [-0.5, 0.5, 0.0]]
-    wall = [[0.0, -2.0, 0.05], [0.0, 2.0, 0.05], [0.0, 2.0, 3.0], [0.0, -2.0, 3.0]]
-    scene = ti.Scene.from_polygons(torch.tensor([floor, wall], dtype=D))
+    scene = _wall_over_floor(0.0)
     sun = torch.tensor([1.0, 0.0, -0.2], dtype=D)
     with warnings.catch_warnings():
         warnings.simplefilter("error", AccuracyWarning)
@@ -429,9 +432,7 @@ def test_a_wall_hung_across_a_floor_is_planned_by_halving():
     from torch_interreflect.accuracy.moments_plan import refine_moments
     from torch_interreflect.accuracy.moments_settings import moment_quadrature_tol
 
-    floor = [[-0.5, -0.5, 0.0], [0.5, -0.5, 0.0], [0.5, 0.5, 0.0], [-0.5, 0.5, 0.0]]
-    wall = [[0.3, -2.0, 0.05], [0.3, 2.0, 0.05], [0.3, 2.0, 3.0], [0.3, -2.0, 3.0]]
-    scene = ti.Scene.from_polygons(torch.tensor([floor, wall], dtype=D))
+    scene = _wall_over_floor(0.3)
     sun, r = torch.tensor([1.0, 0.0, -0.2], dtype=D), torch.full((2,), 0.9, dtype=D)
     plan_module = sys.modules["torch_interreflect.accuracy.plan"]
     pb = plan_module._problem(scene, r, sun, ONE, None, 1e-3, WL, False)
