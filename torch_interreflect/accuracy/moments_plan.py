@@ -278,11 +278,11 @@ def _level(pb: Problem, leaves: Leaves, share: float, seed: int = 0, sky_samples
         if linear and not first:
             return level(K1, x1, Q_LINEAR * d10)
         x2 = output(2)[1]
-        converged = rms(relative_change(x2, x1)) <= Q_CONVERGED * rms(d10)
+        d21 = relative_change(x2, x1)
+        converged = rms(d21) <= Q_CONVERGED * rms(d10)
         if rough_first:  # the first level of halving: its a-priori estimate, unknown (inf) where it does not hold
-            est = rough_estimate(d10, relative_change(x2, x1))
-            # a sun's shadow edge across a leaf: its quadrature error is in the light's moments, the same at every
-            # degree, so no difference of degrees sees it
+            est = rough_estimate(d10, d21)
+            # a sun's shadow edge across a leaf: its error is in the light's moments, the same at every degree
             held = converged and not (is_sun and bool(rough_leaf.any()))
             return level(K, x2, est if held else torch.full_like(est, math.inf))
         if first and not converged:  # plan by halving

@@ -195,5 +195,5 @@ def rough_estimate(d10: Tensor, d21: Tensor) -> Tensor:
     d10, d21 = d10.double(), d21.double()
     m = torch.maximum(d10, d21)
     q = d21 / d10.clamp_min(torch.finfo(torch.float64).tiny)
-    tail = torch.where(q < 1, q / (1 - q).clamp_min(1 / Q_DIVERGING), torch.full_like(q, Q_DIVERGING))
-    return m * torch.where(q <= Q_CONVERGED, torch.full_like(q, Q_ROUGH), tail.clamp_max(Q_DIVERGING))
+    tail = (q / (1 - q).clamp_min(1 / Q_DIVERGING)).clamp_max(Q_DIVERGING)  # q ≥ 1: Q_DIVERGING
+    return m * torch.where(q <= Q_CONVERGED, torch.full_like(q, Q_ROUGH), tail)
