@@ -376,8 +376,8 @@ def test_a_priori_estimate_does_not_depend_on_the_facet_order():
 
 
 def test_a_priori_estimate_in_small_blocks(groove, monkeypatch):
-    """The covariances are summed in blocks of source facets (``COV_BLOCK`` entries): one facet per block gives the
-    same estimate, for two columns of reflectance."""
+    """The covariances are summed in blocks of source facets (``COV_BLOCK`` entries): one facet per block, its rows
+    gathered from the sparse factors (not made dense), gives the same estimate, for two columns of reflectance."""
     from torch_interreflect.accuracy import apriori
 
     K = ti.form_factors(groove)

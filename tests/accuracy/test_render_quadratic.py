@@ -372,6 +372,37 @@ def test_plan_reuse_and_gradients(groove):
         p.for_geometry(ti.scenes.v_groove(61.0, size=(1.0, 1.0), divisions=2, dtype=D))
 
 
+def test_apply_reuses_the_planner_s_last_solve_only_for_its_system(groove, monkeypatch):
+    """``render`` is ``plan(...).apply(...)``: for the planner's reflectance (any illuminant) ``apply`` takes the
+    planner's last solve instead of solving again; another reflectance, one that requires grad, or a plan whose light
+    was replaced solves, and every output equals a direct solve."""
+    import dataclasses
+    import importlib
+
+    plan_module = importlib.import_module("torch_interreflect.accuracy.plan")  # the package's `plan` is the function
+
+    r9 = torch.full((8,), 0.9, dtype=D)
+    p = ti.accuracy.plan(groove, r9, SUN, ONE, wavelengths=WL, accuracy=1e-3)
+    solves = []
+    real = plan_module.solve_moments
+    monkeypatch.setattr(plan_module, "solve_moments", lambda *a, **k: (solves.append(1), real(*a, **k))[1])
+
+    def direct(r: torch.Tensor, g: torch.Tensor, S: float) -> torch.Tensor:
+        c = solve_moments(p.form_factors, r[p.leaf_user], g[:, :, None] * S)
+        return ti.geometry.area_average(facet_averages(c), p.leaf_user, p.leaves.areas, 8)
+
+    torch.testing.assert_close(p.apply(r9, 2 * ONE).irradiance, direct(r9, p.light_factor, 2.0), rtol=1e-12, atol=0)
+    assert solves == []
+    r = torch.linspace(0.2, 0.8, 8, dtype=D)
+    torch.testing.assert_close(p.apply(r, ONE).irradiance, direct(r, p.light_factor, 1.0), rtol=1e-12, atol=0)
+    rg = r9.clone().requires_grad_(True)
+    p.apply(rg, ONE).irradiance.sum().backward()
+    assert len(solves) == 2 and rg.grad is not None and bool((rg.grad != 0).any())
+    q = dataclasses.replace(p, light_factor=0.5 * p.light_factor)
+    torch.testing.assert_close(q.apply(r9, ONE).irradiance, direct(r9, 0.5 * p.light_factor, 1.0), rtol=1e-12, atol=0)
+    assert len(solves) == 3
+
+
 def test_camera_rgb_and_image():
     scene = ti.scenes.v_groove(45.0, divisions=3, dtype=D)
     wl = ti.spectral.wavelengths(dtype=D)

@@ -38,14 +38,9 @@ of the output that each replica makes, over √2 (:data:`REPLICA_MARGIN`), is it
 a margin on so noisy a measure). It is not lowered by refinement. While it keeps the total above the
 request, each count grows by the factor that brings its part down at the least cost (the costs modelled from counts
 of pairs and rays, not timed, so that a render is the same bit for bit from run to run), and the replicas are drawn
-again at the new counts. (Before the replicas, the check with other rays and 1.5 × the sky directions was thrown
-away after it measured; on the Cornell box under a sky at 5e-3 the planner took 89 s at r = 0.9 and 30 s at
-r = 0.2, against 18 s and 18 s with the replicas, for errors from Mitsuba of 0.16 % / 0.30 % against
-0.15 % / 0.22 %.)
+again at the new counts.
 
-Where the scene's openings can be told, the sky's open part comes from them (``sky_rays(..., openings=True)``;
-the Cornell box at 1e-2 … 1e-3, r = 0.9 / 0.2: 0.65–7.9 s / 1.1–4.1 s, against 1.5–19 s / 1.8–107 s with the
-escaping rays, which warned at 1e-3 and r = 0.2).
+Where the scene's openings can be told, the sky's open part comes from them (``sky_rays(..., openings=True)``).
 Under a sky, where a leaf's open part is counted from escaping rays, the same rays also give it as one minus the
 moments' row sums (:func:`~torch_interreflect.light_moments.sky_estimates`), and every solve weighs the two per leaf
 (:func:`~torch_interreflect.solver.solve_moments_sky`): the weight cancels the visibility rays' error where the
@@ -146,6 +141,8 @@ class MomentRefinement:
             ``"rough"``: handed back at the first level, whose degrees do not converge, to be planned by halving).
         history: Per step: leaves, estimate, seconds. rough: User facets whose leaves see a rough light ``[F]``.
         rows: Under a sky, the other estimate of its light ``[n, nb]`` where the two differ (``None`` elsewhere).
+        h: The last solve's leaf averages of the gain ``[..., n, L]`` (for the plan's reflectance; ``Plan.apply``
+            reuses them).
     """
 
     leaves: Leaves
@@ -158,6 +155,7 @@ class MomentRefinement:
     history: list[dict[str, float]] = field(default_factory=list)
     rough: Tensor | None = None
     rows: Tensor | None = None
+    h: Tensor | None = None
 
 
 def leaf_light(light: Any, user: Tensor, num_user: int) -> Any:
@@ -185,7 +183,7 @@ class _Level:
     from escaping rays, its other estimate ``rows [n, nb]`` (:func:`~torch_interreflect.light_moments.sky_estimates`;
     the outputs weigh the two, :func:`~torch_interreflect.solver.solve_moments_sky`). ``light``: the light's moments
     of every degree and its rough leaves where they do not depend on the moments (a sun or a uniform light), for
-    another level on the same leaves (:func:`_level`)."""
+    another level on the same leaves (:func:`_level`). ``h``: the solve's leaf averages of the gain ``[..., n, L]``."""
 
     full: MomentFormFactors
     K: MomentFormFactors
@@ -196,6 +194,7 @@ class _Level:
     sky: SkyRays | None = None
     rows: Tensor | None = None
     light: tuple[Tensor, Tensor] | None = None
+    h: Tensor | None = None
 
     @property
     def degree(self) -> int:
@@ -253,43 +252,44 @@ def _level(pb: Problem, leaves: Leaves, share: float, seed: int = 0, sky_samples
     refl = pb.r[..., leaves.user, :]
     L = refl.shape[-1]
 
-    def output(d: int) -> tuple[MomentFormFactors, Tensor]:
+    def output(d: int) -> tuple[MomentFormFactors, Tensor, Tensor]:
         Kd = K.truncate(d)
         n = Kd.size
         if rows is None:
             h = solve_moments(Kd, refl, g[:, :n, None].expand(-1, -1, L), tol=pb.plan_tol)
         else:  # unit sky radiance per wavelength: the weights are ratios of radiances
             h = solve_moments_sky(Kd, refl, g[:, :n], rows[:, :n], refl.new_ones(L), tol=pb.plan_tol)
-        return Kd, _outputs(pb, leaves, h[..., 0, :])
+        return Kd, _outputs(pb, leaves, h[..., 0, :]), h[..., 0, :]
 
-    def level(Kd: MomentFormFactors, x: Tensor, est: Tensor) -> _Level:
+    def level(out: tuple[MomentFormFactors, Tensor, Tensor], est: Tensor) -> _Level:
+        Kd, x, h = out
         n = Kd.size
-        return _Level(K, Kd, g[:, :n], x, est, rough, sky, None if rows is None else rows[:, :n], keep)
+        return _Level(K, Kd, g[:, :n], x, est, rough, sky, None if rows is None else rows[:, :n], keep, h)
 
     try:
         if degree is not None:
-            Kd, x = output(degree)
-            return level(Kd, x, torch.zeros(pb.F, dtype=torch.float64))
-        K1, x1 = output(1)
-        x0 = output(0)[1]
+            return level(output(degree), torch.zeros(pb.F, dtype=torch.float64))
+        out1 = output(1)
+        x1, x0 = out1[1], output(0)[1]
         d10 = relative_change(x1, x0)
         linear = not rough_first and rms(Q_LINEAR * d10) <= share  # the linear basis meets the share
         first = all(v is None for v in (previous, like, moments))  # where the degrees' convergence is checked
         if linear and not first:
-            return level(K1, x1, Q_LINEAR * d10)
-        x2 = output(2)[1]
+            return level(out1, Q_LINEAR * d10)
+        out2 = output(2)
+        x2 = out2[1]
         d21 = relative_change(x2, x1)
         converged = rms(d21) <= Q_CONVERGED * rms(d10)
         if rough_first:  # the first level of halving: its a-priori estimate, unknown (inf) where it does not hold
             est = rough_estimate(d10, d21)
             # a sun's shadow edge across a leaf: its error is in the light's moments, the same at every degree
             held = converged and not (is_sun and bool(rough_leaf.any()))
-            return level(K, x2, est if held else torch.full_like(est, math.inf))
+            return level(out2, est if held else torch.full_like(est, math.inf))
         if first and not converged:  # plan by halving
             rough.fill_(True)
         if linear:
-            return level(K1, x1, Q_LINEAR * d10)
-        return level(K, x2, Q_EST * relative_change(x1, x2))
+            return level(out1, Q_LINEAR * d10)
+        return level(out2, Q_EST * relative_change(x1, x2))
     finally:
         pb.seconds["solve"] += time.perf_counter() - t
 
@@ -393,7 +393,7 @@ def refine_moments(pb: Problem, *, max_unknowns: int, max_iterations: int, show:
         first = None  # measured on a level since refined
     lv, ray, est = _ray_parts(pb, leaves, lv, est, share, halving, history, t_start, first)
     return MomentRefinement(leaves, lv.K, lv.g, est.cpu(), ray.cpu(), it, reason, history,
-                            None if halving else lv.rough, lv.rows)
+                            None if halving else lv.rough, lv.rows, lv.h)
 
 
 def _occluded(lv: _Level) -> bool:

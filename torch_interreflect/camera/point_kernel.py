@@ -129,8 +129,6 @@ def point_form_factors(
     caster = caster if caster is not None else RayCaster.of(sc)
     gen = torch.Generator().manual_seed(int(seed))
     o = torch.as_tensor(caster.origin)
-    ys, ws = _target_samples(sc.corners, sc.is_triangle.cpu(), int(samples), gen)
-    ys, ws, nf, xf = (ys - o).float(), ws.float(), sc.normals.float(), (x - o).float()
     # pairs (point, facet in front of its facet), point by point; facet pairs (fi, fj) are row-major, so the pairs
     # of facet i are fi's run starting at first[i]
     per_facet = front.sum(1)
@@ -149,6 +147,9 @@ def point_form_factors(
         vals_ahead = point_sums(x, sc.normals[h], pi, cpoly, pid, (sc.centroids[fj], sc.normals[fj]))
     vals, in_front = vals_ahead
     blocked = torch.nonzero(need[pid] & (vals != 0)).reshape(-1)
+    if blocked.numel():  # the targets' samples only where some pair can be blocked
+        ys, ws = _target_samples(sc.corners, sc.is_triangle.cpu(), int(samples), gen)
+        ys, ws, nf, xf = (ys - o).float(), ws.float(), sc.normals.float(), (x - o).float()
     for s in range(0, blocked.numel(), PAIR_CHUNK):
         k = blocked[s : s + PAIR_CHUNK]
         a, t = pi[k], pj[k]
