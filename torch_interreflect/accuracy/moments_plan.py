@@ -23,11 +23,9 @@ estimates by *halving* instead: the first level is solved, every leaf is split i
 facet's estimate is :data:`Q_HALVING` times the change of its output when its leaves were last split; the facets
 carrying the excess are split again. No split where the first level's a-priori estimate
 (:func:`~.moments_settings.rough_estimate`) holds and meets the share (the open room under a sky, see the README).
-A first level whose degrees do not converge (:data:`~.moments_settings.Q_CONVERGED`) is planned by halving too. On
-the Cornell box under a sky at 1e-2 this reaches 0.44 % / 0.30 % from Mitsuba (r = 0.9 / 0.2) with 200 / 212 leaves in
-1.4 s / 1.6 s, estimated 0.82 % / 0.87 % (the constant basis took 4,448 leaves and 28 s for 0.30 % at r = 0.9, and
-warned at r = 0.2 with an actual 3.4 %); with the sky's two estimates weighed (below), 0.057 % in 1.3 s at r = 0.9,
-and 0.26 % in 0.57 s with the looser first cast of the sky at 1e-2 (:func:`~.ray_counts.first_sky_samples`).
+A first level whose degrees do not converge (:data:`~.moments_settings.Q_CONVERGED`) is planned by halving too.
+Facets that nearly touch (a gap under :data:`~.leaves.NEAR_RATIO` of a leaf's diameter) are split together, and
+their estimate is inflated while their leaves are larger than that (:func:`~.leaves.unresolved_near`).
 
 Rays (pairs that a third facet could block, and the sky's open part on their leaves where a facet's back may be in
 view) are sampled. At the last step both are drawn again at the same counts with other seeds (replicas,
@@ -75,7 +73,7 @@ from ..light_moments import SkyRays, light_moments, sky_estimates, sky_rays
 from ..lights import sun_direction
 from ..solver.moments import solve_moments
 from ..solver.sky import solve_moments_sky
-from .leaves import Leaves, relative_change, rms, select, split, to_user
+from .leaves import Leaves, near_facets, relative_change, rms, select, split, to_user, unresolved_near
 from .moments_settings import Q_CONVERGED, Q_EST, Q_HALVING, Q_LINEAR, kernel_part, rough_estimate, solver_part
 from .ray_counts import (
     MAX_SKY_SAMPLES,
@@ -346,8 +344,9 @@ def refine_moments(pb: Problem, *, max_unknowns: int, max_iterations: int, show:
     # halving: a user facet's error is unknown (inf) until its leaves are split, unless the a-priori estimate holds
     est = torch.full((pb.F,), math.inf, dtype=torch.float64)
     lv = _level(pb, leaves, share, rough_first=True) if halving else None
-    if lv is not None and rms(lv.est) <= share:  # the a-priori estimate (rough_estimate) meets the share: no split
-        est = lv.est.cpu()
+    near = near_facets(pb.scene) if halving else None  # facets that nearly touch (leaves.unresolved_near)
+    if lv is not None and near is not None and rms(lv.est) <= share:  # the a-priori estimate meets the share
+        est = unresolved_near(lv.est.cpu(), leaves, near)
     previous: MomentFormFactors | None = None
     first: _Replicas | None = None  # the ray-cast parts at their first counts, measured once (smooth light)
     while True:
@@ -373,7 +372,7 @@ def refine_moments(pb: Problem, *, max_unknowns: int, max_iterations: int, show:
         if it >= max_iterations:
             reason = "" if disc <= met else f"max_iterations ({max_iterations})"
             break
-        sel = select(leaves, est, share, max_leaves)
+        sel = select(leaves, est, share, max_leaves, near)  # with the facets that nearly touch those picked
         if sel is None:
             reason = "" if disc <= met else (
                 f"max_facets ({max_unknowns} unknowns: {max_leaves} leaves of 6 basis functions)")
@@ -388,6 +387,7 @@ def refine_moments(pb: Problem, *, max_unknowns: int, max_iterations: int, show:
             lv = _level(pb, leaves, share, degree=DEGREE, previous=previous)
             change = Q_HALVING * relative_change(lv.x, before).cpu()  # F values: kept on the CPU
             est = torch.where(touched, change, torch.maximum(est, change))  # a neighbour's split moves it too
+            est = unresolved_near(est, leaves, near)  # type: ignore[arg-type]
     bar.close()
     if first is not None and first.level is not lv:
         first = None  # measured on a level since refined

@@ -327,7 +327,7 @@ def plan(
             warnings.simplefilter("ignore", AccuracyWarning)
             pb0 = _problem(scene, reflectance, light, illuminant, camera, accuracy, wavelengths, extrapolate)
             probe = _plan_constant(pb0, light, max_facets, max_iterations=0, show=False, t_start=time.perf_counter(),
-                                   probe=True) if constant_probe_pays(pb0.r, accuracy) else None
+                                   probe=True) if constant_probe_pays(pb0.r, accuracy, scene) else None
         if probe is not None and probe.report.reached:
             return probe
     pb = _problem(scene, reflectance, light, illuminant, camera, accuracy, wavelengths, extrapolate and not quadratic)

@@ -1,0 +1,135 @@
+"""Gaps between facets: the least distance between two convex planar facets, and the pairs whose gap is small
+against their size (near-field pairs that do not touch: a wall hung a few centimetres above a floor).
+
+Where two facets touch (a concave edge, a block on a floor), the planners resolve the light along the contact
+(:mod:`.contacts`). Where they nearly touch, each lights the other in a band about as wide as the gap, which a leaf
+much larger than the gap cannot follow; the error then sits in the *other* facet's output (the floor under the wall
+is off because the wall's radiosity near its foot is wrong), where a per-facet estimate does not look for it.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from ._polygon import plane_eps
+from .scene import Scene
+
+__all__ = ["PAIR_CHUNK", "near_pairs", "polygon_gaps"]
+
+#: Largest number of facet pairs whose gap is computed at once.
+PAIR_CHUNK = 1 << 16
+
+
+def _segment_distances(p1: Tensor, q1: Tensor, p2: Tensor, q2: Tensor) -> Tensor:
+    """Least distance between segments ``p1 q1`` and ``p2 q2`` (``[..., 3]`` each, any batch shape); a segment may
+    be a point. The clamped closed form (Ericson, *Real-Time Collision Detection*, 5.1.9)."""
+    d1, d2, r = q1 - p1, q2 - p2, p1 - p2
+    a, e = (d1 * d1).sum(-1), (d2 * d2).sum(-1)
+    b, c, f = (d1 * d2).sum(-1), (d1 * r).sum(-1), (d2 * r).sum(-1)
+    tiny = torch.finfo(p1.dtype).tiny
+    den = a * e - b * b
+    s = torch.where(den > 1e-12 * a * e, ((b * f - c * e) / den.clamp_min(tiny)).clamp(0, 1), torch.zeros_like(a))
+    s = torch.where(a > tiny, s, torch.zeros_like(s))
+    t = torch.where(e > tiny, (b * s + f) / e.clamp_min(tiny), torch.zeros_like(s))
+    # t outside [0, 1]: clamp it and recompute s for the clamped t
+    t_c = t.clamp(0, 1)
+    s = torch.where((t != t_c) & (a > tiny), ((b * t_c - c) / a.clamp_min(tiny)).clamp(0, 1), s)
+    return (p1 + s[..., None] * d1 - p2 - t_c[..., None] * d2).norm(dim=-1)
+
+
+def _point_polygon_distances(x: Tensor, poly: Tensor, normal: Tensor, eps: float) -> Tensor:
+    """Least distance from points ``x [P, K, 3]`` to convex planar polygons ``poly [P, 4, 3]`` (normals
+    ``[P, 3]``): to the plane where the point's projection falls inside (``eps`` of margin), else to the nearest
+    edge. Shape ``[P, K]``."""
+    nxt = poly.roll(-1, dims=1)
+    height = ((x - poly[:, None, 0]) * normal[:, None]).sum(-1)  # [P, K]
+    y = x - height[..., None] * normal[:, None]
+    side = (torch.linalg.cross((nxt - poly)[:, None], y[:, :, None] - poly[:, None], dim=-1)
+            * normal[:, None, None]).sum(-1)  # [P, K, 4]; a repeated corner's edge gives 0
+    inside = (side >= -eps * (nxt - poly).norm(dim=-1)[:, None]).all(-1)
+    edge = _segment_distances(x[:, :, None], x[:, :, None], poly[:, None], nxt[:, None]).amin(-1)
+    return torch.where(inside, height.abs(), edge)
+
+
+def polygon_gaps(a: Tensor, b: Tensor, normal_a: Tensor, normal_b: Tensor, eps: float = 0.0) -> Tensor:
+    """Least distance between pairs of convex planar facets that do not cross each other (m).
+
+    The least of: every corner of one to the other facet, and every edge of one to every edge of the other. Two
+    facets that cross (one's edge through the other's interior) are not detected: their gap is reported as the
+    least of those distances, not 0.
+
+    Args:
+        a, b: Corners of the pairs' facets (a triangle repeats its last corner). Shape ``[P, 4, 3]`` each.
+        normal_a, normal_b: Their unit normals. Shape ``[P, 3]`` each.
+        eps: Margin of the inside test (m).
+
+    Returns:
+        Gaps ``[P]`` (0 where the facets touch).
+
+    Shape:
+        - a, b: ``[P, 4, 3]``; normal_a, normal_b: ``[P, 3]``; output ``[P]``
+
+    Example:
+        >>> import torch
+        >>> from torch_interreflect.geometry.gaps import polygon_gaps
+        >>> floor = torch.tensor([[[0., 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]]])
+        >>> wall = torch.tensor([[[0.5, 0, 0.05], [0.5, 1, 0.05], [0.5, 1, 1], [0.5, 0, 1]]])
+        >>> round(float(polygon_gaps(floor, wall, torch.tensor([[0., 0, 1]]), torch.tensor([[1., 0, 0]]))[0]), 6)
+        0.05
+    """
+    corners = torch.minimum(_point_polygon_distances(a, b, normal_b, eps).amin(-1),
+                            _point_polygon_distances(b, a, normal_a, eps).amin(-1))
+    ea, eb = a.roll(-1, dims=1), b.roll(-1, dims=1)
+    edges = _segment_distances(a[:, :, None], ea[:, :, None], b[:, None], eb[:, None]).flatten(1).amin(-1)
+    return torch.minimum(corners, edges)
+
+
+def near_pairs(scene: Scene, ratio: float) -> tuple[Tensor, Tensor, Tensor]:
+    """Pairs of facets that face each other (each partly in front of the other) and do not touch, whose gap is
+    below ``ratio`` times the larger of their diameters.
+
+    Args:
+        scene: The scene.
+        ratio: Largest gap over the larger diameter of the pair.
+
+    Returns:
+        ``(i, j, gap)``: both orders of every pair (int64, ``[P]``), and their gaps in metres (float64, ``[P]``).
+
+    Example:
+        >>> import torch, torch_interreflect as ti
+        >>> from torch_interreflect.geometry.gaps import near_pairs
+        >>> floor = [[-0.5, -0.5, 0.0], [0.5, -0.5, 0.0], [0.5, 0.5, 0.0], [-0.5, 0.5, 0.0]]
+        >>> wall = [[0.3, -2.0, 0.05], [0.3, 2.0, 0.05], [0.3, 2.0, 3.0], [0.3, -2.0, 3.0]]
+        >>> i, j, gap = near_pairs(ti.Scene.from_polygons(torch.tensor([floor, wall])), 0.25)
+        >>> i.tolist(), j.tolist(), [round(g, 4) for g in gap.tolist()]
+        ([0, 1], [1, 0], [0.05, 0.05])
+    """
+    sc = scene.to(torch.float64).to("cpu")
+    corners, normals, diam, cent = (t.detach() for t in (sc.corners, sc.normals, sc.diameters, sc.centroids))
+    eps = plane_eps(scene)
+    i, j = torch.triu_indices(sc.num_facets, sc.num_facets, 1)
+    # a lower bound first: the centroids' distance less both diameters (a diameter bounds a corner's distance)
+    keep = (cent[i] - cent[j]).norm(dim=-1) - diam[i] - diam[j] < ratio * torch.maximum(diam[i], diam[j])
+    i, j = i[keep], j[keep]
+
+    def heights(a: Tensor, b: Tensor) -> Tensor:  # of b's corners over a's plane [P, 4]
+        return ((corners[b] - cent[a][:, None]) * normals[a][:, None]).sum(-1)
+
+    h_ij, h_ji = heights(i, j), heights(j, i)
+    # each partly in front of the other; the least height of one's corners over the other's plane bounds the gap
+    low = torch.maximum(h_ij.amin(-1), h_ji.amin(-1))
+    # a corner in the other's plane continues a contact on that plane (a block standing on the tile beside):
+    # resolved along the contact, not a gap
+    on_plane = (h_ij.abs() <= eps).any(-1) | (h_ji.abs() <= eps).any(-1)
+    keep = (h_ij > eps).any(-1) & (h_ji > eps).any(-1) & ~on_plane & (low < ratio * torch.maximum(diam[i], diam[j]))
+    i, j = i[keep], j[keep]
+    # pairs that share a corner touch (a hinge): no gap to compute
+    shared = ((corners[i][:, :, None] - corners[j][:, None]).norm(dim=-1) <= eps).flatten(1).any(-1)
+    i, j = i[~shared], j[~shared]
+    gaps = torch.cat([polygon_gaps(corners[i[s:s + PAIR_CHUNK]], corners[j[s:s + PAIR_CHUNK]],
+                                   normals[i[s:s + PAIR_CHUNK]], normals[j[s:s + PAIR_CHUNK]], eps)
+                      for s in range(0, i.numel(), PAIR_CHUNK)]) if i.numel() else torch.zeros(0, dtype=torch.float64)
+    near = (gaps > eps) & (gaps < ratio * torch.maximum(diam[i], diam[j]))
+    i, j, gaps = i[near], j[near], gaps[near]
+    return torch.cat([i, j]), torch.cat([j, i]), torch.cat([gaps, gaps])
