@@ -46,6 +46,19 @@ def test_gaps_of_known_pairs(dtype):
         assert float(got[k]) == pytest.approx(exact, abs=1e-12 if dtype == torch.float64 else 1e-6), k
 
 
+def test_triangles_and_crossing_facets():
+    """A triangle (its last corner repeated) 0.3 above a square, over its interior and beside it; a square through
+    another (gap 0); a vertical square whose bottom edge runs 0.1 under a floor's edge, through no interior."""
+    sq = torch.tensor(FLOOR, dtype=D)
+    tri = torch.tensor([[-0.2, -0.2, 0.3], [0.2, -0.2, 0.3], [0.0, 0.2, 0.3], [0.0, 0.2, 0.3]], dtype=D)
+    through = torch.tensor([[0.0, -1.0, -0.5], [0.0, 1.0, -0.5], [0.0, 1.0, 0.5], [0.0, -1.0, 0.5]], dtype=D)
+    below = torch.tensor([[0.5, -1.0, -0.1], [0.5, 1.0, -0.1], [0.5, 1.0, -1.0], [0.5, -1.0, -1.0]], dtype=D)
+    a = torch.stack([sq, sq, sq, sq])
+    b = torch.stack([tri, tri + torch.tensor([1.0, 0, 0], dtype=D), through, below])
+    got = polygon_gaps(a, b, torch.stack([_normal(x) for x in a]), torch.stack([_normal(x) for x in b]))
+    torch.testing.assert_close(got, torch.tensor([0.3, (0.3**2 + 0.3**2) ** 0.5, 0.0, 0.1], dtype=D))
+
+
 def test_gaps_against_dense_sampling():
     """Random rectangles placed apart: the gap is at most the sampled least distance, and within the sampling's
     spacing of it."""

@@ -24,8 +24,8 @@ facet's estimate is :data:`Q_HALVING` times the change of its output when its le
 carrying the excess are split again. No split where the first level's a-priori estimate
 (:func:`~.moments_settings.rough_estimate`) holds and meets the share (the open room under a sky, see the README).
 A first level whose degrees do not converge (:data:`~.moments_settings.Q_CONVERGED`) is planned by halving too.
-Facets that nearly touch (a gap under :data:`~.leaves.NEAR_RATIO` of a leaf's diameter) are split together, and
-their estimate is inflated while their leaves are larger than that (:func:`~.leaves.unresolved_near`).
+When halving, facets that nearly touch (a gap under :data:`~.leaves.NEAR_RATIO` of a leaf's diameter) are split
+together, and their estimate is inflated while their leaves are larger than that (:func:`~.leaves.unresolved_near`).
 
 Rays (pairs that a third facet could block, and the sky's open part on their leaves where a facet's back may be in
 view) are sampled. At the last step both are drawn again at the same counts with other seeds (replicas,
@@ -338,15 +338,15 @@ def refine_moments(pb: Problem, *, max_unknowns: int, max_iterations: int, show:
     met = share  # the share as first set: a lowered one that cannot be reached falls back to more rays
     max_leaves = max(pieces.num_facets, max_unknowns // 6)
     history: list[dict[str, float]] = []
-    reason = ""
-    it = 0
+    reason, it = "", 0
     bar = tqdm(total=max_iterations + 1, desc="render (quadratic basis)", disable=not show, leave=False)
     # halving: a user facet's error is unknown (inf) until its leaves are split, unless the a-priori estimate holds
     est = torch.full((pb.F,), math.inf, dtype=torch.float64)
     lv = _level(pb, leaves, share, rough_first=True) if halving else None
-    near = near_facets(pb.scene) if halving else None  # facets that nearly touch (leaves.unresolved_near)
+    near, raw = near_facets(pb.scene) if halving else None, est  # raw: before unresolved_near's factor (once each)
     if lv is not None and near is not None and rms(lv.est) <= share:  # the a-priori estimate meets the share
-        est = unresolved_near(lv.est.cpu(), leaves, near)
+        raw = lv.est.cpu()
+        est = unresolved_near(raw, leaves, near)
     previous: MomentFormFactors | None = None
     first: _Replicas | None = None  # the ray-cast parts at their first counts, measured once (smooth light)
     while True:
@@ -386,8 +386,8 @@ def refine_moments(pb: Problem, *, max_unknowns: int, max_iterations: int, show:
             before = lv.x
             lv = _level(pb, leaves, share, degree=DEGREE, previous=previous)
             change = Q_HALVING * relative_change(lv.x, before).cpu()  # F values: kept on the CPU
-            est = torch.where(touched, change, torch.maximum(est, change))  # a neighbour's split moves it too
-            est = unresolved_near(est, leaves, near)  # type: ignore[arg-type]
+            raw = torch.where(touched, change, torch.maximum(raw, change))  # a neighbour's split moves it too
+            est = unresolved_near(raw, leaves, near)  # type: ignore[arg-type]
     bar.close()
     if first is not None and first.level is not lv:
         first = None  # measured on a level since refined

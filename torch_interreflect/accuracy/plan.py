@@ -241,15 +241,20 @@ class Plan:
     def _planned(self, r: Tensor, refl_leaf: Tensor) -> Tensor | None:
         """The leaf averages of the gain that :func:`plan` solved last on the quadratic basis, where this level solves
         the same system: the plan's own moments, light and grid (not replaced since), the reflectance ``r [..., F, L]``
-        equal to the planner's and not requiring grad (:func:`render` is ``plan(...).apply(...)``: one solve fewer,
-        2 of the box corner's 20 ms). None elsewhere."""
+        equal to the planner's and not requiring grad, the same solver settings (:func:`render` is
+        ``plan(...).apply(...)``: one solve fewer, 2 of the box corner's 20 ms). None elsewhere."""
         saved = self.__dict__.get("_solved")
         if saved is None or (torch.is_grad_enabled() and r.requires_grad):
             return None
-        r0, K, g, rows, nodes, h = saved
-        same = (K is self.form_factors and g is self.light_factor and rows is self.sky_rows and nodes is self.nodes
+        (r0, key, h), now = saved, self._solve_key()
+        same = (all(a is b for a, b in zip(key[:4], now[:4], strict=True)) and key[4:] == now[4:]
                 and r.shape == r0.shape and r.dtype == r0.dtype and r.device == r0.device and torch.equal(r, r0))
-        return h.to(refl_leaf.dtype) if same and h.shape == refl_leaf.shape else None
+        return h if same and h.shape == refl_leaf.shape and h.dtype == refl_leaf.dtype else None
+
+    def _solve_key(self) -> tuple[Any, ...]:
+        """A solve's inputs beside the reflectance: objects (by identity), the light's version, solver settings."""
+        return (self.form_factors, self.light_factor, self.sky_rows, self.nodes, self.light_factor._version,
+                self.solver_tol, self.method)
 
     def _geometry(self) -> tuple[FormFactors, Tensor, Tensor]:
         """Form factors, light factor and leaf areas to solve with: the plan's; when the user's corners (or a light
@@ -318,11 +323,7 @@ def plan(
     check_request(scene, accuracy, max_facets)
     quadratic = polynomial_allowed(basis, scene, light)
     if quadratic and basis == "auto":
-        # one solve on the constant basis, with its a-priori estimate, is cheaper still where it already meets the
-        # request (dark scenes: 30 ms against 0.2 s for the 200-facet grooves at r = 0.2); it costs 10-30 ms where
-        # it does not under a sun, 0.11-0.41 s under a sky (the Cornell box, the open room: without the sky's second
-        # cast, 0.29-0.99 s with it), so it is skipped on bright scenes (constant_probe_pays). Then the light's
-        # roughness decides how the polynomial basis estimates its error.
+        # one constant solve with its a-priori estimate, kept where it meets the request (constant_probe_pays)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", AccuracyWarning)
             pb0 = _problem(scene, reflectance, light, illuminant, camera, accuracy, wavelengths, extrapolate)
@@ -392,8 +393,7 @@ def _plan_quadratic(pb: Problem, light: Any, max_facets: int, max_iterations: in
             # converge on the first level (Q_CONVERGED): the degrees' difference does not bound the error there
             st = refine_moments(pb, halving=True, **kw)
     n = st.leaves.scene.num_facets
-    # each apply picks dense or CG by the solver's cost model for its own reflectance columns (many variants of a
-    # plan favour CG); CG always above DENSE_MAX_UNKNOWNS
+    # each apply picks dense or CG for its own reflectance columns (solver's cost model); CG above DENSE_MAX_UNKNOWNS
     method = "auto" if st.K.size * n <= DENSE_MAX_UNKNOWNS else "cg"
     tol = solver_tolerance(pb.accuracy)
     report = moment_report(pb, st, method, tol, t_start)
@@ -407,7 +407,7 @@ def _plan_quadratic(pb: Problem, light: Any, max_facets: int, max_iterations: in
              torch.arange(pb.grid.numel(), device=pb.grid.device), method, None, tol, report, light,
              degree=st.K.degree, sky_rows=st.rows)
     if st.h is not None:  # not a field: a dataclasses.replace of the plan drops it (Plan._planned)
-        p.__dict__["_solved"] = (pb.r, p.form_factors, p.light_factor, p.sky_rows, p.nodes, st.h)
+        p.__dict__["_solved"] = (pb.r, p._solve_key(), st.h)
     return p
 
 

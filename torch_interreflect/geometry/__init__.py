@@ -6,6 +6,7 @@
 - :mod:`.contacts`: :func:`split_at_contacts` (split facets where another facet stands on them).
 - :mod:`.sizing`: :func:`subdivide_to` (split every facet into pieces no longer than a length).
 - :mod:`.openings`: :func:`~.openings.openings` (the convex hull's faces that no facet covers: where a sky shines in).
+- :mod:`.gaps`: :func:`~.gaps.near_pairs` (facets that nearly touch: a wall hung a few centimetres over a floor).
 """
 
 from . import scenes

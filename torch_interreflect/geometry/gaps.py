@@ -22,8 +22,8 @@ PAIR_CHUNK = 1 << 16
 
 
 def _segment_distances(p1: Tensor, q1: Tensor, p2: Tensor, q2: Tensor) -> Tensor:
-    """Least distance between segments ``p1 q1`` and ``p2 q2`` (``[..., 3]`` each, any batch shape); a segment may
-    be a point. The clamped closed form (Ericson, *Real-Time Collision Detection*, 5.1.9)."""
+    """Least distance between segments ``p1 q1`` and ``p2 q2`` (``[..., 3]`` each, any batch shape); either may be a
+    point. The clamped closed form (Ericson, *Real-Time Collision Detection*, 5.1.9)."""
     d1, d2, r = q1 - p1, q2 - p2, p1 - p2
     a, e = (d1 * d1).sum(-1), (d2 * d2).sum(-1)
     b, c, f = (d1 * d2).sum(-1), (d1 * r).sum(-1), (d2 * r).sum(-1)
@@ -35,6 +35,7 @@ def _segment_distances(p1: Tensor, q1: Tensor, p2: Tensor, q2: Tensor) -> Tensor
     # t outside [0, 1]: clamp it and recompute s for the clamped t
     t_c = t.clamp(0, 1)
     s = torch.where((t != t_c) & (a > tiny), ((b * t_c - c) / a.clamp_min(tiny)).clamp(0, 1), s)
+    s = torch.where((e <= tiny) & (a > tiny), (-c / a.clamp_min(tiny)).clamp(0, 1), s)  # the second is a point
     return (p1 + s[..., None] * d1 - p2 - t_c[..., None] * d2).norm(dim=-1)
 
 
@@ -52,20 +53,29 @@ def _point_polygon_distances(x: Tensor, poly: Tensor, normal: Tensor, eps: float
     return torch.where(inside, height.abs(), edge)
 
 
-def polygon_gaps(a: Tensor, b: Tensor, normal_a: Tensor, normal_b: Tensor, eps: float = 0.0) -> Tensor:
-    """Least distance between pairs of convex planar facets that do not cross each other (m).
+def _crossing_distances(a: Tensor, b: Tensor, normal_b: Tensor, eps: float) -> Tensor:
+    """Least distance ``[P]`` from where ``a``'s edges cross ``b``'s plane to facet ``b`` (0 where an edge of ``a``
+    passes through ``b``); an edge that does not cross stands in with its first corner."""
+    h = ((a - b[:, None, 0]) * normal_b[:, None]).sum(-1)  # [P, 4]
+    hn, an = h.roll(-1, dims=1), a.roll(-1, dims=1)
+    t = torch.where(h * hn < 0, h / (h - hn).where(h * hn < 0, torch.ones_like(h)), torch.zeros_like(h))
+    return _point_polygon_distances(a + t[..., None] * (an - a), b, normal_b, eps).amin(-1)
 
-    The least of: every corner of one to the other facet, and every edge of one to every edge of the other. Two
-    facets that cross (one's edge through the other's interior) are not detected: their gap is reported as the
-    least of those distances, not 0.
+
+def polygon_gaps(a: Tensor, b: Tensor, normal_a: Tensor, normal_b: Tensor, eps: float = 0.0) -> Tensor:
+    """Least distance between pairs of convex planar facets (m).
+
+    The least of: every corner of one to the other facet, every edge of one to every edge of the other, and where an
+    edge of one crosses the other's plane, that point to the other facet (0 where the facets cross).
 
     Args:
         a, b: Corners of the pairs' facets (a triangle repeats its last corner). Shape ``[P, 4, 3]`` each.
-        normal_a, normal_b: Their unit normals. Shape ``[P, 3]`` each.
+        normal_a, normal_b: Their unit normals, by the right-hand rule of the corners' order (as
+            :attr:`~.scene.Scene.normals`: the inside test depends on it). Shape ``[P, 3]`` each.
         eps: Margin of the inside test (m).
 
     Returns:
-        Gaps ``[P]`` (0 where the facets touch).
+        Gaps ``[P]`` (0 where the facets touch or cross).
 
     Shape:
         - a, b: ``[P, 4, 3]``; normal_a, normal_b: ``[P, 3]``; output ``[P]``
@@ -80,9 +90,10 @@ def polygon_gaps(a: Tensor, b: Tensor, normal_a: Tensor, normal_b: Tensor, eps: 
     """
     corners = torch.minimum(_point_polygon_distances(a, b, normal_b, eps).amin(-1),
                             _point_polygon_distances(b, a, normal_a, eps).amin(-1))
+    crossings = torch.minimum(_crossing_distances(a, b, normal_b, eps), _crossing_distances(b, a, normal_a, eps))
     ea, eb = a.roll(-1, dims=1), b.roll(-1, dims=1)
     edges = _segment_distances(a[:, :, None], ea[:, :, None], b[:, None], eb[:, None]).flatten(1).amin(-1)
-    return torch.minimum(corners, edges)
+    return torch.minimum(torch.minimum(corners, crossings), edges)
 
 
 def near_pairs(scene: Scene, ratio: float) -> tuple[Tensor, Tensor, Tensor]:
@@ -94,7 +105,10 @@ def near_pairs(scene: Scene, ratio: float) -> tuple[Tensor, Tensor, Tensor]:
         ratio: Largest gap over the larger diameter of the pair.
 
     Returns:
-        ``(i, j, gap)``: both orders of every pair (int64, ``[P]``), and their gaps in metres (float64, ``[P]``).
+        ``(i, j, gap)``: both orders of every pair (int64), and their gaps in metres (float64).
+
+    Shape:
+        - output ``i, j, gap``: ``[P]`` each (``P`` even: both orders)
 
     Example:
         >>> import torch, torch_interreflect as ti
@@ -108,10 +122,7 @@ def near_pairs(scene: Scene, ratio: float) -> tuple[Tensor, Tensor, Tensor]:
     sc = scene.to(torch.float64).to("cpu")
     corners, normals, diam, cent = (t.detach() for t in (sc.corners, sc.normals, sc.diameters, sc.centroids))
     eps = plane_eps(scene)
-    i, j = torch.triu_indices(sc.num_facets, sc.num_facets, 1)
-    # a lower bound first: the centroids' distance less both diameters (a diameter bounds a corner's distance)
-    keep = (cent[i] - cent[j]).norm(dim=-1) - diam[i] - diam[j] < ratio * torch.maximum(diam[i], diam[j])
-    i, j = i[keep], j[keep]
+    i, j = _candidates(cent, diam, ratio)
 
     def heights(a: Tensor, b: Tensor) -> Tensor:  # of b's corners over a's plane [P, 4]
         return ((corners[b] - cent[a][:, None]) * normals[a][:, None]).sum(-1)
@@ -119,17 +130,32 @@ def near_pairs(scene: Scene, ratio: float) -> tuple[Tensor, Tensor, Tensor]:
     h_ij, h_ji = heights(i, j), heights(j, i)
     # each partly in front of the other; the least height of one's corners over the other's plane bounds the gap
     low = torch.maximum(h_ij.amin(-1), h_ji.amin(-1))
-    # a corner in the other's plane continues a contact on that plane (a block standing on the tile beside):
-    # resolved along the contact, not a gap
+    # a corner in the other's plane (a shared hinge; a block standing on the tile beside): the pair meets that plane
+    # along a line, the concave corner of a contact, which the planners' estimates follow; not a gap
     on_plane = (h_ij.abs() <= eps).any(-1) | (h_ji.abs() <= eps).any(-1)
     keep = (h_ij > eps).any(-1) & (h_ji > eps).any(-1) & ~on_plane & (low < ratio * torch.maximum(diam[i], diam[j]))
     i, j = i[keep], j[keep]
-    # pairs that share a corner touch (a hinge): no gap to compute
-    shared = ((corners[i][:, :, None] - corners[j][:, None]).norm(dim=-1) <= eps).flatten(1).any(-1)
-    i, j = i[~shared], j[~shared]
     gaps = torch.cat([polygon_gaps(corners[i[s:s + PAIR_CHUNK]], corners[j[s:s + PAIR_CHUNK]],
                                    normals[i[s:s + PAIR_CHUNK]], normals[j[s:s + PAIR_CHUNK]], eps)
                       for s in range(0, i.numel(), PAIR_CHUNK)]) if i.numel() else torch.zeros(0, dtype=torch.float64)
     near = (gaps > eps) & (gaps < ratio * torch.maximum(diam[i], diam[j]))
     i, j, gaps = i[near], j[near], gaps[near]
     return torch.cat([i, j]), torch.cat([j, i]), torch.cat([gaps, gaps])
+
+
+def _candidates(cent: Tensor, diam: Tensor, ratio: float) -> tuple[Tensor, Tensor]:
+    """Pairs ``i < j`` whose centroids' distance less both diameters (each bounds a corner's distance from its
+    centroid) is below ``ratio`` times the larger diameter, built in row blocks of about :data:`PAIR_CHUNK` pairs
+    (memory ``O(F)`` per row, not ``O(F²)``)."""
+    F = cent.shape[0]
+    rows = max(1, PAIR_CHUNK // max(1, F))
+    found_i, found_j = [], []
+    for s0 in range(0, F, rows):
+        r = torch.arange(s0, min(F, s0 + rows))
+        dist = torch.cdist(cent[r], cent, compute_mode="donot_use_mm_for_euclid_dist")
+        bound = dist - diam[r, None] - diam[None] - ratio * torch.maximum(diam[r, None], diam)
+        a, b = torch.nonzero((bound < 0) & (torch.arange(F)[None] > r[:, None]), as_tuple=True)
+        found_i.append(r[a])
+        found_j.append(b)
+    empty = torch.zeros(0, dtype=torch.int64)
+    return (torch.cat(found_i), torch.cat(found_j)) if found_i else (empty, empty)
