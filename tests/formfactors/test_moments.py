@@ -544,3 +544,7 @@ def test_moments_across_a_mask_are_the_full_moments_on_those_pairs():
     assert float(part[~cross[:, None, :, None].expand_as(part)].abs().max()) == 0.0
     with pytest.raises(ShapeError, match="across"):
         moment_form_factors(scene, 1, across=mask[:-1])
+    as_list = moment_form_factors(scene, 1, across=mask.tolist()).matrix.reshape(F, 3, F, 3)  # a list is a mask too
+    assert torch.equal(as_list, part)
+    with pytest.raises(ShapeError, match="across"):
+        moment_form_factors(scene, 1, across=mask[:-1].tolist())

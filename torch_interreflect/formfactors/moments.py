@@ -340,8 +340,11 @@ def moment_form_factors(
     if occlusion not in ("auto", True, False):
         raise ValueRangeError(f"occlusion must be 'auto', True or False; got {occlusion!r}")
     check_count(visibility_samples, "visibility_samples", note=" (rays per side of the target)")
-    if across is not None and (tuple(across.shape) != (scene.num_facets,) or reuse is not None):
-        raise ShapeError(f"across must be a mask [{scene.num_facets}], without reuse; got {list(across.shape)}")
+    if across is not None:
+        across = torch.as_tensor(across, dtype=torch.bool)  # a list or an array too
+        if tuple(across.shape) != (scene.num_facets,) or reuse is not None:
+            raise ShapeError(f"across must be a mask [{scene.num_facets}], without reuse; got {list(across.shape)}"
+                             f"{' and reuse' if reuse is not None else ''}")
     with compiled_work():  # torch's glue on one thread, the compiled loops and rays on the caller's
         kern = _kernel()
         sc = scene.to(torch.float64).to("cpu").detach()
@@ -349,7 +352,7 @@ def moment_form_factors(
                     "visibility_samples": int(visibility_samples)}
         old_of = None if reuse is None else reuse_map(sc, reuse, settings)
         setup = _pairs(sc, degree, quadrature_tol, plane_eps(scene), occlusion, copy_tie(scene.dtype),
-                       None if across is None else torch.as_tensor(across, dtype=torch.bool).cpu())
+                       None if across is None else across.cpu())
         basis = facet_basis(sc, degree)
         acc = np.zeros((setup["dom"].numel(), nb, nb))
         todo = np.arange(acc.shape[0], dtype=np.int64)
