@@ -33,7 +33,7 @@ test: $(STAMP) lint
 	$(BIN)/python -m pytest -q -n 2 --doctest-modules torch_interreflect tests
 	$(BIN)/python -m pytest -q -p no:cacheprovider tests/solver tests/formfactors tests/layers tests/camera tests/accuracy \
 		tests/geometry/test_contacts.py tests/geometry/test_scene.py tests/geometry/test_derived.py tests/test_unique.py tests/test_lights.py \
-		tests/test_lights_grad.py tests/test_sky_openings.py tests/geometry/test_openings.py \
+		tests/test_lights_grad.py tests/test_sky_openings.py tests/geometry/test_openings.py tests/geometry/test_gaps.py \
 		tests/training/test_generator.py tests/training/test_refine_lm.py
 
 bench-formfactors: $(STAMP)

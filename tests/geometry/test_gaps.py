@@ -5,6 +5,7 @@ import pytest
 import torch
 
 import torch_interreflect as ti
+from torch_interreflect.errors import ShapeError, ValueRangeError
 from torch_interreflect.geometry.gaps import near_pairs, polygon_gaps
 
 D = torch.float64
@@ -93,3 +94,16 @@ def test_near_pairs_find_a_hung_wall_not_touching_facets():
     tile = [[0.5, -0.5, 0.0], [1.5, -0.5, 0.0], [1.5, 0.5, 0.0], [0.5, 0.5, 0.0]]
     side = [[0.45, -0.4, 0.0], [0.45, 0.4, 0.0], [0.45, 0.4, 0.5], [0.45, -0.4, 0.5]]  # faces +x, 5 cm from the tile
     assert near_pairs(ti.Scene.from_polygons(torch.tensor([FLOOR, tile, side], dtype=D)), 0.1)[0].numel() == 0
+
+
+def test_bad_input_says_what_was_expected():
+    sq = torch.tensor([FLOOR], dtype=D)
+    n = torch.tensor([[0.0, 0.0, 1.0]], dtype=D)
+    with pytest.raises(ShapeError, match=r"\[P, 4, 3\]"):
+        polygon_gaps(sq[:, :3], sq[:, :3], n, n)
+    with pytest.raises(ShapeError, match=r"normals \[P, 3\]"):
+        polygon_gaps(sq, sq, n[0], n[0])
+    scene = ti.Scene.from_polygons(torch.tensor([FLOOR], dtype=D))
+    for bad in (0.0, -0.1, float("nan"), "0.1"):
+        with pytest.raises(ValueRangeError, match="ratio"):
+            near_pairs(scene, bad)

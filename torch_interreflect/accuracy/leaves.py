@@ -29,6 +29,7 @@ __all__ = [
     "light_check",
     "light_factor",
     "near_facets",
+    "near_partners",
     "relative_change",
     "rms",
     "select",
@@ -36,7 +37,6 @@ __all__ = [
     "subset",
     "to_user",
     "unresolved_near",
-    "with_near_partners",
 ]
 
 
@@ -179,73 +179,67 @@ def _chosen(est: Tensor, target: float) -> list[int]:
     return chosen
 
 
-def select(leaves: Leaves, est: Tensor, target: float, max_facets: int,
-           near: tuple[Tensor, Tensor, Tensor] | None = None) -> Tensor | None:
-    """Leaves to split ``[n]``: every leaf of the user facets that carry the excess error, as many as
-    ``max_facets`` allows (``None`` when no facet fits); with ``near`` (:func:`near_facets`), also those of the
-    facets that nearly touch them (:func:`with_near_partners`)."""
-    n = leaves.scene.num_facets
-    user = leaves.user.cpu()
-    count = torch.bincount(user, minlength=est.numel())
-    room = max_facets - n
+def _fit(candidates: list[int], count: Tensor, room: int) -> tuple[list[int], int]:
+    """The candidate user facets whose leaves fit in ``room`` more leaves, in order (a split adds three leaves per
+    leaf; ``count [F]``: leaves per user facet), and the room left."""
     picked = []
-    for i in _chosen(est, target):  # each split adds three leaves per leaf
+    for i in candidates:
         if 3 * int(count[i]) <= room:
             picked.append(i)
             room -= 3 * int(count[i])
+    return picked, room
+
+
+def select(leaves: Leaves, est: Tensor, target: float, max_facets: int,
+           near: tuple[Tensor, Tensor, Tensor] | None = None) -> Tensor | None:
+    """Leaves to split ``[n]``: every leaf of the user facets that carry the excess error, as many as
+    ``max_facets`` allows (``None`` when no facet fits); with ``near`` (:func:`near_facets`), then those of the
+    facets that nearly touch them (:func:`near_partners`), as many as the room left allows."""
+    user = leaves.user.cpu()
+    count = torch.bincount(user, minlength=est.numel())
+    picked, room = _fit(_chosen(est, target), count, max_facets - leaves.scene.num_facets)
     if not picked:
         return None
     pick = torch.zeros(est.numel(), dtype=torch.bool)
     pick[picked] = True
-    sel = pick[user].to(leaves.user.device)
-    return sel if near is None else with_near_partners(leaves, sel, near, max_facets)
+    if near is not None:
+        pick[_fit(near_partners(leaves, pick, near), count, room)[0]] = True
+    return pick[user].to(leaves.user.device)
 
 
 #: A user facet is split with a selected one whose gap to it is below this fraction of its own leaves' diameter
-#: (:func:`with_near_partners`).
+#: (:func:`near_partners`).
 NEAR_RATIO = 0.1
 
-#: A user facet's estimate is unknown while its gap to a facet it nearly touches is below this fraction of its
-#: leaves' diameter (:func:`unresolved_near`).
+#: A user facet's estimate is inflated (:data:`NEAR_INFLATION`) while its gap to a facet it nearly touches is below
+#: this fraction of its leaves' diameter (:func:`unresolved_near`).
 UNRESOLVED_RATIO = 0.1
 
 #: What :func:`unresolved_near` multiplies such a facet's estimate by.
 NEAR_INFLATION = 4.0
 
 
-def with_near_partners(leaves: Leaves, sel: Tensor, near: tuple[Tensor, Tensor, Tensor], max_facets: int) -> Tensor:
-    """``sel [n]`` (leaves to split) with every leaf of the user facets ``j`` near a selected user facet ``i``: the
-    pairs ``near = (i, j, gap)`` (:func:`~torch_interreflect.geometry.gaps.near_pairs`, both orders) whose gap is
-    below :data:`NEAR_RATIO` times the diameter of ``j``'s leaves, as many as ``max_facets`` allows.
+def near_partners(leaves: Leaves, picked: Tensor, near: tuple[Tensor, Tensor, Tensor]) -> list[int]:
+    """The user facets ``j`` not ``picked`` (bool ``[F]``) near a picked one ``i``: the pairs ``near = (i, j, gap)``
+    (:func:`near_facets`, both orders) whose gap is below :data:`NEAR_RATIO` times the diameter of ``j``'s leaves.
 
     Where two facets nearly touch, the error of one's output comes from the other's leaves (a floor under a wall
     hung 5 cm above it, uniform light, r = 0.9, 1e-3: the floor 0.42 % off on 16 leaves while the wall stayed at 4,
     estimated 0.02 %): splitting them together puts that error into the change that estimates it.
 
     Args:
-        leaves: The leaves. sel: The leaves picked to split, bool ``[n]``.
-        near: ``(i, j, gap)`` user-facet pairs, both orders (:func:`near_facets`).
-        max_facets: Most leaves after the split.
+        leaves: The leaves. picked: The user facets picked to split, bool ``[F]``.
+        near: ``(i, j, gap)`` user-facet pairs, both orders.
 
     Returns:
-        The leaves to split, bool ``[n]``.
+        The partners' indices, ascending.
     """
     i, j, gap = near
     if not i.numel():
-        return sel
-    user = leaves.user.cpu()
-    F = int(max(int(user.max()), int(i.max()), int(j.max()))) + 1
-    picked = torch.zeros(F, dtype=torch.bool)
-    picked[user[sel.cpu()]] = True
-    partner = torch.zeros(F, dtype=torch.bool)
-    partner[j[picked[i] & ~picked[j] & (gap < NEAR_RATIO * _leaf_sizes(leaves, F)[j])]] = True
-    count = torch.bincount(user, minlength=F)
-    room = max_facets - leaves.scene.num_facets - 3 * int(sel.sum())
-    for k in torch.nonzero(partner).reshape(-1).tolist():  # each split adds three leaves per leaf
-        if 3 * int(count[k]) <= room:
-            picked[k] = True
-            room -= 3 * int(count[k])
-    return picked[user].to(sel.device)
+        return []
+    partner = torch.zeros(picked.numel(), dtype=torch.bool)
+    partner[j[picked[i] & ~picked[j] & (gap < NEAR_RATIO * _leaf_sizes(leaves, picked.numel())[j])]] = True
+    return torch.nonzero(partner).reshape(-1).tolist()
 
 
 def near_facets(scene: Scene) -> tuple[Tensor, Tensor, Tensor]:

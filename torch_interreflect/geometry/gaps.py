@@ -9,9 +9,12 @@ is off because the wall's radiosity near its foot is wrong), where a per-facet e
 
 from __future__ import annotations
 
+import math
+
 import torch
 from torch import Tensor
 
+from ..errors import ShapeError, ValueRangeError
 from ._polygon import plane_eps
 from .scene import Scene
 
@@ -77,6 +80,9 @@ def polygon_gaps(a: Tensor, b: Tensor, normal_a: Tensor, normal_b: Tensor, eps: 
     Returns:
         Gaps ``[P]`` (0 where the facets touch or cross).
 
+    Raises:
+        ShapeError: ``a`` and ``b`` not ``[P, 4, 3]`` alike, or normals not ``[P, 3]``.
+
     Shape:
         - a, b: ``[P, 4, 3]``; normal_a, normal_b: ``[P, 3]``; output ``[P]``
 
@@ -88,6 +94,10 @@ def polygon_gaps(a: Tensor, b: Tensor, normal_a: Tensor, normal_b: Tensor, eps: 
         >>> round(float(polygon_gaps(floor, wall, torch.tensor([[0., 0, 1]]), torch.tensor([[1., 0, 0]]))[0]), 6)
         0.05
     """
+    if a.ndim != 3 or tuple(a.shape[1:]) != (4, 3) or a.shape != b.shape or normal_a.shape != (a.shape[0], 3) \
+            or normal_b.shape != normal_a.shape:
+        raise ShapeError(f"polygon_gaps needs corners [P, 4, 3] twice and normals [P, 3] twice; got {list(a.shape)}, "
+                         f"{list(b.shape)}, {list(normal_a.shape)}, {list(normal_b.shape)}")
     corners = torch.minimum(_point_polygon_distances(a, b, normal_b, eps).amin(-1),
                             _point_polygon_distances(b, a, normal_a, eps).amin(-1))
     crossings = torch.minimum(_crossing_distances(a, b, normal_b, eps), _crossing_distances(b, a, normal_a, eps))
@@ -107,6 +117,9 @@ def near_pairs(scene: Scene, ratio: float) -> tuple[Tensor, Tensor, Tensor]:
     Returns:
         ``(i, j, gap)``: both orders of every pair (int64), and their gaps in metres (float64).
 
+    Raises:
+        ValueRangeError: ``ratio`` not a finite positive number.
+
     Shape:
         - output ``i, j, gap``: ``[P]`` each (``P`` even: both orders)
 
@@ -119,6 +132,8 @@ def near_pairs(scene: Scene, ratio: float) -> tuple[Tensor, Tensor, Tensor]:
         >>> i.tolist(), j.tolist(), [round(g, 4) for g in gap.tolist()]
         ([0, 1], [1, 0], [0.05, 0.05])
     """
+    if not (isinstance(ratio, (int, float)) and math.isfinite(ratio) and ratio > 0):
+        raise ValueRangeError(f"near_pairs needs a finite ratio > 0 (gap over the larger diameter); got {ratio!r}")
     sc = scene.to(torch.float64).to("cpu")
     corners, normals, diam, cent = (t.detach() for t in (sc.corners, sc.normals, sc.diameters, sc.centroids))
     eps = plane_eps(scene)
