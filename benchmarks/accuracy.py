@@ -55,6 +55,7 @@ import torch_interreflect as ti
 from benchmarks._common import RESULTS, ROOT
 from benchmarks._common import mitsuba as mr
 from benchmarks._common.mitsuba_curve import SAMPLERS, mitsuba_curve
+from benchmarks._common.one_solve import one_solve_seconds
 from benchmarks._common.ours import DTYPE, AccuracyWarning, direct_light, render, solve, split_and_subdivide
 from benchmarks._common.report import debias, fmt_e, fmt_t, rel_errors, write_lines
 from benchmarks.speed_vs_error import rows_from_markdown, time_at_error
@@ -356,6 +357,7 @@ def _child(conn: Any, p: dict, accuracy: float, max_facets: int, extrapolate: bo
         c = run_case(p, accuracy, max_facets, extrapolate, basis)
         if c["seconds"] < BEST_OF_TWO_S:  # timed as the uniform curve is: the faster of two under 2 s
             c["seconds"] = min(c["seconds"], run_case(p, accuracy, max_facets, extrapolate, basis)["seconds"])
+        c["one_solve_seconds"] = one_solve_seconds(p, accuracy)  # the least work on the basis (nan: not a sun)
         conn.send(c)
     except BaseException:  # report anything to the parent rather than dying silently
         conn.send({"error": traceback.format_exc()})
@@ -650,8 +652,10 @@ def mitsuba_source(results: dict) -> str:
 
 def against_mitsuba(results: dict, md_rows: dict) -> list[str]:
     """Mitsuba's time to reach the requested error over ``render``'s, per request, on the bright scenes without
-    the sky-lit scenes (geometric mean and range)."""
+    the sky-lit scenes (geometric mean and range), and per scene beside Mitsuba's time over one solve on the
+    quadratic basis (:mod:`benchmarks._common.one_solve`): the most any plan on this basis and kernel could show."""
     per: dict[float, list[float]] = {}
+    rows: list[str] = []
     for n, r in results.items():
         if n.startswith(SKY_SCENES) or not n.endswith("_r9"):
             continue
@@ -660,6 +664,10 @@ def against_mitsuba(results: dict, md_rows: dict) -> list[str]:
             t = time_at_error(mit, c["accuracy"]) if "m" in c else math.nan
             if math.isfinite(t):
                 per.setdefault(c["accuracy"], []).append(t / c["seconds"])
+                one = c.get("one_solve_seconds", math.nan)
+                ratio = f" ({t / one:.3g}×)" if math.isfinite(one) else ""
+                rows.append(f"| {n} | {c['accuracy']:g} | {fmt_t(t)} | {fmt_t(c['seconds'])} ({t / c['seconds']:.3g}×) "
+                            f"| {fmt_t(one)}{ratio} |")
     if not per:
         return []
     lines = ["", "Mitsuba's time at the requested error / `render`'s time, bright scenes (r = 0.9) without the "
@@ -669,6 +677,12 @@ def against_mitsuba(results: dict, md_rows: dict) -> list[str]:
         x = per[acc]
         g = statistics.geometric_mean(x)
         lines.append(f"| {acc:g} | {len(x)} | {g:.3g}× | {min(x):.2g}–{max(x):.2g}× |")
+    lines += ["", "Per scene, beside *one solve*: the scene split at contacts, its moments at the request's quadrature "
+              "tolerance, the sun's moments and one degree-2 solve, no planning and no estimate (best of three, in "
+              "the render's process; `benchmarks/_common/one_solve.py`). No plan on this basis and kernel is "
+              "faster, so Mitsuba's time over it is the most a planner could show:", "",
+              "| scene | requested | Mitsuba | render (Mitsuba / it) | one solve (Mitsuba / it) |",
+              "|---|---:|---:|---:|---:|", *rows]
     return lines
 
 

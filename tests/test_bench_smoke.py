@@ -130,6 +130,7 @@ def test_accuracy_benchmark_times_renders_on_the_threads_asked_for(monkeypatch: 
     from benchmarks import accuracy as ab
 
     monkeypatch.setattr(ab, "run_case", lambda *a, **k: {"seconds": 3.0, "threads": torch.get_num_threads()})
+    monkeypatch.setattr(ab, "one_solve_seconds", lambda *a, **k: math.nan)
     before = torch.get_num_threads()
     for n in (1, 2):
         assert ab.run_case_limited({}, 1e-2, 100, 60.0, threads=n)["threads"] == n
@@ -169,7 +170,14 @@ def test_accuracy_benchmark_reads_mitsuba_at_the_request() -> None:
     ratios = [time_at_error(ab.md_curves(n, rows, 3e-4)[0], 1e-2) / 0.5 for n in ("vgroove30_sun_r9",
                                                                                    "box_corner_sun_r9")]
     geo = math.sqrt(ratios[0] * ratios[1])
-    assert lines[-1] == f"| 0.01 | 2 | {geo:.3g}× | {min(ratios):.2g}–{max(ratios):.2g}× |"
+    assert f"| 0.01 | 2 | {geo:.3g}× | {min(ratios):.2g}–{max(ratios):.2g}× |" in lines
+    # per scene, beside one solve's time where the child measured it (the box corner), '–' where not
+    results["box_corner_sun_r9"]["cases"][0]["one_solve_seconds"] = 0.02
+    lines = ab.against_mitsuba(results, rows)
+    t_box = ratios[1] * 0.5
+    assert lines[-2:] == [
+        f"| vgroove30_sun_r9 | 0.01 | {ab.fmt_t(ratios[0] * 0.5)} | 500 ms ({ratios[0]:.3g}×) | – |",
+        f"| box_corner_sun_r9 | 0.01 | {ab.fmt_t(t_box)} | 500 ms ({ratios[1]:.3g}×) | 20 ms ({t_box / 0.02:.3g}×) |"]
 
 
 def test_accuracy_benchmark_takes_mitsuba_timed_in_the_run() -> None:
@@ -185,8 +193,8 @@ def test_accuracy_benchmark_takes_mitsuba_timed_in_the_run() -> None:
     results = {"vgroove30_sun_r9": {"noise": 3e-4, "cases": cases, "mitsuba_now": now}}
     lines = ab.against_mitsuba(results, {})
     assert "timed in this run" in lines[1]
-    assert lines[-2] == "| 0.02 | 1 | 0.1× | 0.1–0.1× |"  # independent: 0.05 s at 2 %
-    assert lines[-1] == "| 0.005 | 1 | 2.4× | 2.4–2.4× |"  # multijitter: 0.3 s at 1 %, t ∝ e⁻² below: 1.2 s
+    assert lines[5] == "| 0.02 | 1 | 0.1× | 0.1–0.1× |"  # independent: 0.05 s at 2 %
+    assert lines[6] == "| 0.005 | 1 | 2.4× | 2.4–2.4× |"  # multijitter: 0.3 s at 1 %, t ∝ e⁻² below: 1.2 s
 
 
 @pytest.mark.skipif(not mr.available(), reason="Mitsuba 3 (bench extra) not installed")
@@ -371,3 +379,27 @@ def test_cc_refine_starts_the_requested_angle_off_the_answer() -> None:
         assert math.degrees(math.acos(min(1.0, cos))) == pytest.approx(6.0, abs=1e-9)
         assert torch.equal(s, _start(rgb, index, 6.0))  # seeded by the image's index
     assert not torch.equal(_start(rgb, 0, 6.0), _start(rgb, 1, 6.0))
+
+
+def test_one_solve_is_the_degree_2_solve_on_the_pieces() -> None:
+    """The accuracy benchmark's least-work reference solves what render's quadratic plan solves on the pieces at
+    their first level: the same facet averages as a plan's degree-2 solve of the unrefined pieces (the box corner
+    under its sun), and no time where the light is not a sun."""
+    import torch
+
+    from benchmarks import accuracy as ab
+    from benchmarks._common.one_solve import one_solve, one_solve_seconds
+    from torch_interreflect.formfactors import moment_form_factors
+    from torch_interreflect.geometry import split_at_contacts
+    from torch_interreflect.light_moments import light_moments
+    from torch_interreflect.solver.moments import solve_moments
+
+    p = ab.problem(mr.load_reference("box_corner_sun_r2"))
+    c = one_solve(p, 1e-3)
+    pieces = split_at_contacts(p["scene"])[0]
+    G = moment_form_factors(pieces, 2, quadrature_tol=1e-5)
+    want = solve_moments(G, torch.full((pieces.num_facets,), 0.2, dtype=torch.float64),
+                         light_moments(pieces, G, p["light"], direction=True)[:, :, None] * p["illuminant"])
+    assert c.shape == (pieces.num_facets, 6, 1)
+    torch.testing.assert_close(c[:, 0], want[:, 0], rtol=1e-12, atol=0.0)  # 1e-3: tol 1e-5, as here
+    assert math.isnan(one_solve_seconds(dict(p, light="sky"), 1e-2))
