@@ -74,6 +74,22 @@ def test_sky_rays_take_the_openings_where_they_are_told():
     assert sky_rays(w, moment_form_factors(w, 0), samples=4, points=2, openings=True).opening_rays is None
 
 
+def test_sky_rays_leave_the_openings_where_the_rows_are_exact(monkeypatch):
+    """No pair ray cast and no back in view (a V-groove): ``1 − Σ_j F`` is the open part with no rays, so
+    ``sky_rays(..., openings=True)`` neither computes the openings' moments nor casts a ray, and the light is the
+    rows' (the same as without openings)."""
+    import torch_interreflect.light_moments as lm
+
+    groove = ti.scenes.v_groove(30.0, divisions=3, dtype=torch.float64)
+    K = moment_form_factors(groove, 2, quadrature_tol=1e-8)
+    calls = []
+    monkeypatch.setattr(lm, "sky_through_openings", lambda *a, **k: calls.append(a))
+    sky = lm.sky_rays(groove, K, samples=8, points=4, openings=True)
+    assert calls == [] and sky.opening_rays is None
+    assert sky.escape_ids.numel() == 0 and sky.back_ids.numel() == 0
+    assert torch.equal(light_moments(groove, K, "sky", sky=sky), light_moments(groove, K, "sky"))
+
+
 def test_a_facet_facing_out_of_the_scene_sees_all_of_the_sky():
     """The open room's cabinet back, against the wall and facing out: the escaping rays count all of its view (the
     Mitsuba reference lights it so); the openings alone would give 0."""

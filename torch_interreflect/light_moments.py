@@ -188,16 +188,18 @@ OPENING_BACK_SAMPLES = 0.25
 
 def _through_openings(sc: Scene, K: MomentFormFactors, maybe_back: Tensor, samples: int, points: int, seed: int,
                       rows: bool) -> SkyRays | None:
-    """:func:`sky_rays` from the scene's openings (None where they cannot be told)."""
+    """:func:`sky_rays` from the scene's openings (None where they cannot be told, or where the moments' rows are
+    exact: no pair of facets is ray cast and no facet's back is in view, so ``1 − Σ_j F`` is the open part with no
+    rays, and the openings' moments are not computed)."""
+    occ = K.info.get("occluded_facets")
+    if not bool(maybe_back.any()) and not (isinstance(occ, Tensor) and bool(occ.any())):
+        return None
     n_open = max(2, round(samples * OPENING_SAMPLES))
     got = sky_through_openings(sc, K.degree, quadrature_tol=float(K.info.get("quadrature_tol", 1e-6)),
                                visibility_samples=n_open, seed=seed, with_rays=True)
     if got is None:
         return None
     g, rays = got  # type: ignore[misc]
-    occ = K.info.get("occluded_facets")
-    if rays == 0 and not bool(maybe_back.any()) and not (isinstance(occ, Tensor) and bool(occ.any())):
-        return None  # nothing blocks and no back is in view: the moments' rows are as exact, with no rays
     F = sc.num_facets
     escape_back = None
     if rows:
