@@ -138,6 +138,10 @@ def near_pairs(scene: Scene, ratio: float) -> tuple[Tensor, Tensor, Tensor]:
     corners, normals, diam, cent = (t.detach() for t in (sc.corners, sc.normals, sc.diameters, sc.centroids))
     eps = plane_eps(scene)
     i, j = _candidates(cent, diam, ratio)
+    # facets facing the same way are never each in front of the other (their heights over each other's planes are
+    # opposite): most candidates of a tiled plane, left before their corners are gathered
+    other_way = (normals[i] * normals[j]).sum(-1) < 1.0 - 1e-9
+    i, j = i[other_way], j[other_way]
 
     def heights(a: Tensor, b: Tensor) -> Tensor:  # of b's corners over a's plane [P, 4]
         return ((corners[b] - cent[a][:, None]) * normals[a][:, None]).sum(-1)
