@@ -424,7 +424,7 @@ def uniform_curve(
     times are cached per scene (the errors are recomputed against the finer solution given); ``siblings``
     (name -> (problem, finer)) with the same geometry share the timed kernel and are cached alongside."""
     tag = f"{max_facets}_t{threads}{split_tag(p)}"
-    path = cache / f"uniform_{name}_{tag}.npz"
+    path = uniform_path(name, p, max_facets, threads, cache)
     if not path.exists():
         group = {name: p, **{n: v[0] for n, v in (siblings or {}).items() if n != name}}
         proc = mp.get_context("fork").Process(target=_time_uniform, args=(group, max_facets, cache, tag, threads))
@@ -445,6 +445,11 @@ def uniform_curve(
         out.append({"k": int(k), "facets": F * int(k) ** 2, "seconds": float(t), "rmse": rmse, "max": mx,
                     "timed": timed})
     return out
+
+
+def uniform_path(name: str, p: dict, max_facets: int, threads: int, cache: Path = CACHE) -> Path:
+    """Where :func:`uniform_curve` caches a scene's uniform solutions and times."""
+    return cache / f"uniform_{name}_{max_facets}_t{threads}{split_tag(p)}.npz"
 
 
 #: Seconds a uniform curve's child may take before it is stopped (the longest measured: about 60 s per geometry)
@@ -832,6 +837,9 @@ def run_group(names: Sequence[str], accs: Sequence[float], a: argparse.Namespace
             + (f"; quadratic reference k = {quad['k']}" if quad else "; no quadratic reference (rough light)")
             + f" ({time.perf_counter() - t0:.1f} s)"
         )
+    if not a.cached_uniform:  # timed again in this run: its ratios to the renders side by side
+        for n in names:
+            uniform_path(n, ps[n], a.uniform_facets, a.threads).unlink(missing_ok=True)
     curves = {}
     for n in names:
         t0 = time.perf_counter()
@@ -1021,6 +1029,9 @@ def main(argv: Sequence[str] | None = None) -> None:
                     help="render(basis=...) (suffix _constant / _quadratic when not auto)")
     ap.add_argument("--last-level", action="store_true",
                     help="render(extrapolate=False): the last refinement level alone (suffix _last_level)")
+    ap.add_argument("--cached-uniform", action="store_true",
+                    help="reuse the uniform curves timed by an earlier run (cached under out/accuracy/); by default "
+                    "they are timed again, so that their ratios to the renders come from one run")
     ap.add_argument("--no-mitsuba", action="store_true",
                     help="do not time Mitsuba in this run: read its times off speed_vs_error.md")
     ap.add_argument(

@@ -106,6 +106,7 @@ def test_accuracy_benchmark_one_tiny_case(tmp_path: Path) -> None:
     assert m["vs_finer"] <= 2e-2 and m["vs_mitsuba_debiased"] <= 2e-2  # a dark scene: easy
     curve = ab.uniform_curve("box_corner_sun_r2", p, finer, max_facets=48, cache=tmp_path)
     assert [c["k"] for c in curve] == [1]
+    assert ab.uniform_path("box_corner_sun_r2", p, 48, 1, tmp_path).exists()  # what a run deletes to time it again
     t, label = ab.cheapest_reaching(curve, 1.0)
     assert label == "k=1" and t == curve[0]["seconds"]
     assert ab.cheapest_reaching(curve, 0.0)[1] == "not reached"
