@@ -357,11 +357,22 @@ def _child(conn: Any, p: dict, accuracy: float, max_facets: int, extrapolate: bo
         c = run_case(p, accuracy, max_facets, extrapolate, basis)
         if c["seconds"] < BEST_OF_TWO_S:  # timed as the uniform curve is: the faster of two under 2 s
             c["seconds"] = min(c["seconds"], run_case(p, accuracy, max_facets, extrapolate, basis)["seconds"])
-        c["one_solve_seconds"] = one_solve_seconds(p, accuracy)  # the least work on the basis (nan: not a sun)
+        c["one_solve_seconds"] = _one_solve_or_nan(p, accuracy, basis)
         conn.send(c)
     except BaseException:  # report anything to the parent rather than dying silently
         conn.send({"error": traceback.format_exc()})
     conn.close()
+
+
+def _one_solve_or_nan(p: dict, accuracy: float, basis: str) -> float:
+    """:func:`~benchmarks._common.one_solve.one_solve_seconds` where the report uses it (the bright scenes, not
+    ``--basis constant``), ``nan`` elsewhere or where it fails: the render's result is sent either way."""
+    if basis == "constant" or float(p.get("r", 0.0)) < 0.5:
+        return math.nan
+    try:
+        return one_solve_seconds(p, accuracy)
+    except Exception:  # a reference for the report: the render's own result must not be lost
+        return math.nan
 
 
 def run_case_limited(p: dict, accuracy: float, max_facets: int, limit_s: float, extrapolate: bool = True,
@@ -423,11 +434,10 @@ def uniform_curve(
     on ``threads`` torch threads, in a forked child as the renders are (:func:`run_case_limited`). Solutions and
     times are cached per scene (the errors are recomputed against the finer solution given); ``siblings``
     (name -> (problem, finer)) with the same geometry share the timed kernel and are cached alongside."""
-    tag = f"{max_facets}_t{threads}{split_tag(p)}"
     path = uniform_path(name, p, max_facets, threads, cache)
     if not path.exists():
         group = {name: p, **{n: v[0] for n, v in (siblings or {}).items() if n != name}}
-        proc = mp.get_context("fork").Process(target=_time_uniform, args=(group, max_facets, cache, tag, threads))
+        proc = mp.get_context("fork").Process(target=_time_uniform, args=(group, max_facets, cache, threads))
         proc.start()
         proc.join(UNIFORM_LIMIT_S)
         if proc.is_alive():  # hung (or far slower than any curve measured): stop it rather than wait forever
@@ -456,7 +466,7 @@ def uniform_path(name: str, p: dict, max_facets: int, threads: int, cache: Path 
 UNIFORM_LIMIT_S = 1800.0
 
 
-def _time_uniform(group: dict, max_facets: int, cache: Path, tag: str, threads: int) -> None:
+def _time_uniform(group: dict, max_facets: int, cache: Path, threads: int) -> None:
     """Time uniform ``k = 1, 2, ...`` of the problems ``group`` (same geometry) on ``threads`` torch threads and save
     each curve to ``cache`` (the body of :func:`uniform_curve`, run in a forked child)."""
     torch.set_num_threads(threads)
@@ -477,10 +487,11 @@ def _time_uniform(group: dict, max_facets: int, cache: Path, tag: str, threads: 
         ks.append(k)
         k += 1
     cache.mkdir(parents=True, exist_ok=True)
-    for n in group:  # written whole or not at all: a child killed mid-write leaves no file a later run would trust
-        tmp = cache / f"uniform_{n}_{tag}.{os.getpid()}.tmp.npz"
+    for n, q in group.items():  # written whole or not at all: a child killed mid-write leaves no file a later run
+        path = uniform_path(n, q, max_facets, threads, cache)  # would trust
+        tmp = path.with_name(f"{path.stem}.{os.getpid()}.tmp.npz")
         np.savez(tmp, k=np.array(ks), E=np.array(sols[n]), seconds=np.array(times[n]))
-        os.replace(tmp, cache / f"uniform_{n}_{tag}.npz")
+        os.replace(tmp, path)
 
 
 def uniform_timing_note(results: dict, started: float, ended: float = math.inf) -> str:
@@ -495,8 +506,8 @@ def uniform_timing_note(results: dict, started: float, ended: float = math.inf) 
     ends = sorted({time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime(w)) for w in span})
     dated = f" on {' to '.join(ends)}" if ends else ""
     part = "partly in this run, partly" if any(inside) else "not in this run but"
-    return (f"timed {part}{dated} (read from the cache `out/accuracy/uniform_*.npz`; delete it to time them "
-            "again)")
+    return (f"timed {part}{dated} (read from the cache `out/accuracy/uniform_*.npz` with `--cached-uniform`; "
+            "without it they are timed again)")
 
 
 def cheapest_reaching(curve: Sequence[dict], target: float) -> tuple[float, str]:

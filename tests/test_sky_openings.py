@@ -77,7 +77,7 @@ def test_sky_rays_take_the_openings_where_they_are_told():
 def test_sky_rays_leave_the_openings_where_the_rows_are_exact(monkeypatch):
     """No pair ray cast and no back in view (a V-groove): ``1 − Σ_j F`` is the open part with no rays, so
     ``sky_rays(..., openings=True)`` neither computes the openings' moments nor casts a ray, and the light is the
-    rows' (the same as without openings)."""
+    rows' (the same as without openings). Moments made without occlusion still go to the openings."""
     import torch_interreflect.light_moments as lm
 
     groove = ti.scenes.v_groove(30.0, divisions=3, dtype=torch.float64)
@@ -88,6 +88,9 @@ def test_sky_rays_leave_the_openings_where_the_rows_are_exact(monkeypatch):
     assert calls == [] and sky.opening_rays is None
     assert sky.escape_ids.numel() == 0 and sky.back_ids.numel() == 0
     assert torch.equal(light_moments(groove, K, "sky", sky=sky), light_moments(groove, K, "sky"))
+    # moments without occlusion mark no pair as ray cast whatever blocks: their rows are not known exact there
+    lm.sky_rays(groove, moment_form_factors(groove, 2, occlusion=False), samples=8, points=4, openings=True)
+    assert len(calls) == 1
 
 
 def test_a_facet_facing_out_of_the_scene_sees_all_of_the_sky():

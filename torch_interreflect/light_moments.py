@@ -128,7 +128,8 @@ def sky_rays(scene: Scene, form_factors: MomentFormFactors, *, backfaces: Litera
             the open part of every facet from them instead (:func:`~.sky_openings.sky_through_openings` with
             :data:`OPENING_SAMPLES` times ``samples`` rays per side of an opening and the moments' quadrature
             tolerance; ``escape_ids`` all facets), and with ``rows`` the back coverage from
-            :data:`OPENING_BACK_SAMPLES` of the directions.
+            :data:`OPENING_BACK_SAMPLES` of the directions; not where the rows are exact (no pair ray cast in
+            moments with occlusion, no back in view).
 
     Returns:
         :class:`SkyRays`.
@@ -189,10 +190,11 @@ OPENING_BACK_SAMPLES = 0.25
 def _through_openings(sc: Scene, K: MomentFormFactors, maybe_back: Tensor, samples: int, points: int, seed: int,
                       rows: bool) -> SkyRays | None:
     """:func:`sky_rays` from the scene's openings (None where they cannot be told, or where the moments' rows are
-    exact: no pair of facets is ray cast and no facet's back is in view, so ``1 − Σ_j F`` is the open part with no
-    rays, and the openings' moments are not computed)."""
+    exact: moments with occlusion in which no pair of facets is ray cast, and no facet's back in view, so
+    ``1 − Σ_j F`` is the open part with no rays, and the openings' moments are not computed)."""
     occ = K.info.get("occluded_facets")
-    if not bool(maybe_back.any()) and not (isinstance(occ, Tensor) and bool(occ.any())):
+    visibility = K.info.get("settings", {}).get("occlusion", "auto") is not False  # occ marks every blockable pair
+    if isinstance(occ, Tensor) and visibility and not bool(occ.any()) and not bool(maybe_back.any()):
         return None
     n_open = max(2, round(samples * OPENING_SAMPLES))
     got = sky_through_openings(sc, K.degree, quadrature_tol=float(K.info.get("quadrature_tol", 1e-6)),

@@ -38,7 +38,7 @@ request, each count grows by the factor that brings its part down at the least c
 of pairs and rays, not timed, so that a render is the same bit for bit from run to run), and the replicas are drawn
 again at the new counts.
 
-Where the scene's openings can be told, the sky's open part comes from them (``sky_rays(..., openings=True)``).
+Where the openings can be told and the rows are not exact, the sky's open part comes from them (``sky_rays``).
 Under a sky, where a leaf's open part is counted from escaping rays, the same rays also give it as one minus the
 moments' row sums (:func:`~torch_interreflect.light_moments.sky_estimates`), and every solve weighs the two per leaf
 (:func:`~torch_interreflect.solver.solve_moments_sky`): the weight cancels the visibility rays' error where the
