@@ -125,9 +125,9 @@ def _corner_covariance(factors: Tensor, index: Tensor, dB: Tensor, areas: Tensor
     """``local_i = Σ_j (A_j / A_i) |cov_j(F(· → i), B)|`` with the covariance over facet ``j``'s four corners:
     ``cov_ji = ¼ Σ_c F(p_jc → i) dB_jc`` (``dB`` sums to zero over the corners, so ``F``'s own mean drops out).
 
-    Where the point-to-facet factors fit in :data:`COV_BLOCK` entries densely they are made dense once and each block
-    of sources gathers its corners' rows (the 200-facet V-groove: 0.5 ms against 2.4 ms for the sparse rows);
-    larger ones gather each block's rows from the sparse entries.
+    With ``dense`` (the factors made dense where they fit in :data:`COV_BLOCK` entries) each block of sources takes
+    its corners' rows from it (the 200-facet V-groove: 0.5 ms against 2.4 ms for the sparse rows); without, each
+    block's rows are gathered from the sparse entries.
 
     Args:
         factors: Point-to-facet form factors, sparse COO ``[P, n]`` (coalesced).
@@ -175,6 +175,14 @@ def _dense_rows(factors: Tensor, index: Tensor) -> Callable[[int, int], Tensor]:
     return rows
 
 
+def _method(K: FormFactors, refl: Tensor) -> str:
+    """The estimate's solver: the Neumann series where ``ρ = r_max · max row sum`` is at most :data:`NEUMANN_RHO`
+    (a dark scene's series converges in a few products, ρ = 0.2: 5 for 1e-3, cheaper than a factorisation), else the
+    solver's own choice."""
+    rho = float(refl.max()) * float(K.row_sums().max()) if refl.numel() and K.num_facets else 0.0
+    return "neumann" if rho <= NEUMANN_RHO else "auto"
+
+
 @torch.no_grad()
 def estimate(scene: Scene, K: FormFactors, refl: Tensor, g: Tensor, h: Tensor, light: Any) -> Tensor:
     """``(I − F R)⁻¹ local``: the error of the piecewise-constant solve, its sources estimated from the corners
@@ -219,10 +227,7 @@ def estimate(scene: Scene, K: FormFactors, refl: Tensor, g: Tensor, h: Tensor, l
         rcol = r64.movedim(-2, 0).reshape(n, -1)
         local = local + OSC_SHARE * K64.matmul(rcol * osc)
     local = local.reshape(rh.shape).movedim(0, -2)  # [..., n, C]
-    rho = float(r64.max()) * float(K64.row_sums().max()) if r64.numel() and n else 0.0
-    # a dark scene's series converges in a few products (ρ = 0.2: 5 for 1e-3), cheaper than a factorisation
-    method = "neumann" if rho <= NEUMANN_RHO else "auto"
-    err = solve(K64, r64, local, tol=1e-3, method=method) if bool(local.any()) else local
+    err = solve(K64, r64, local, tol=1e-3, method=_method(K64, r64)) if bool(local.any()) else local
     rel = err.abs() / h64.abs().clamp_min(1e-300)
     rel = rel.movedim(-2, 0).reshape(n, -1)
     return rel.amax(1) if rel.shape[1] else rel.new_zeros(n)
